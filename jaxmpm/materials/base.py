@@ -1,0 +1,48 @@
+"""The interface every material model shares, and the checks its inputs go through.
+
+A material is a frozen dataclass holding what the scene file says (SI units, angles in
+degrees). Its fields split in two:
+- `parameter_names`: dynamic values, handed to `update` in a `params` dict so that `jax.grad`
+  and `jax.vmap` act on them without recompiling;
+- `option_names`: static choices (e.g. the Drucker-Prager cone) that decide which code is
+  compiled; changing one recompiles.
+
+`update(params, stress, L, dt, state) -> (stress, state)` is written for ONE material point
+(3x3 stress, 3x3 velocity gradient L_ij = dv_i/dx_j) and vmapped by the solver. It must read
+physical values only from `params`, never from `self`, or they would be baked into the
+compiled code.
+"""
+
+import math
+
+import jax
+
+from jaxmpm.errors import SceneError
+
+
+def is_concrete(value):
+    """True for Python/numpy numbers; False for JAX tracers (which cannot be range-checked)."""
+    return not isinstance(value, jax.core.Tracer)
+
+
+def check_range(key, value, low=None, high=None, low_inclusive=False, high_inclusive=False):
+    """Raise SceneError unless low < value < high (bounds optional, inclusivity as given)."""
+    if not is_concrete(value):
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "dtype"):
+        raise SceneError(f"{key} = {value!r} must be a number.")
+    value = float(value)
+    if not math.isfinite(value):
+        raise SceneError(f"{key} = {value!r} must be finite.")
+    too_low = low is not None and (value < low if low_inclusive else value <= low)
+    too_high = high is not None and (value > high if high_inclusive else value >= high)
+    if too_low or too_high:
+        left = "[" if low_inclusive else "("
+        right = "]" if high_inclusive else ")"
+        span = f"{left}{'-inf' if low is None else low}, {'inf' if high is None else high}{right}"
+        raise SceneError(f"{key} = {value!r} is out of range: it must lie in {span}.")
+
+
+def material_parameters(material):
+    """The dynamic parameter dict {name: value} of a material (the leaf of `sim.params`)."""
+    return {name: getattr(material, name) for name in material.parameter_names}

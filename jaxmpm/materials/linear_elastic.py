@@ -1,0 +1,71 @@
+"""Hypoelastic isotropic linear elasticity with the Jaumann rate (SPEC section 2).
+
+sigma_jaumann = K tr(d) I + 2 G dev(d), with K = E / (3 (1 - 2 nu)), G = E / (2 (1 + nu)),
+d = sym(L). Used for walls and piles, and as the elastic part of the soil models.
+"""
+
+import dataclasses
+from typing import ClassVar
+
+import jax.numpy as jnp
+
+from jaxmpm import tensors
+from jaxmpm.materials.base import check_range
+
+
+def bulk_and_shear_moduli(young, poisson):
+    """K = E / (3 (1 - 2 nu)) and G = E / (2 (1 + nu)) [Pa]."""
+    return young / (3.0 * (1.0 - 2.0 * poisson)), young / (2.0 * (1.0 + poisson))
+
+
+def elastic_increment(params, rate_of_deformation, dt):
+    """dt (K tr(d) I + 2 G dev(d)): the elastic stress increment for a strain-rate d [Pa]."""
+    bulk, shear = bulk_and_shear_moduli(params["young"], params["poisson"])
+    volumetric = jnp.trace(rate_of_deformation)
+    return dt * (
+        bulk * volumetric * jnp.eye(3, dtype=rate_of_deformation.dtype)
+        + 2.0 * shear * tensors.deviator(rate_of_deformation)
+    )
+
+
+def p_wave_speed(params):
+    """c_p = sqrt((K + 4 G / 3) / rho) [m/s], the speed that sets the CFL time step."""
+    bulk, shear = bulk_and_shear_moduli(params["young"], params["poisson"])
+    return jnp.sqrt((bulk + 4.0 * shear / 3.0) / params["density"])
+
+
+@dataclasses.dataclass(frozen=True)
+class LinearElastic:
+    """An isotropic hypoelastic material.
+
+    Attributes:
+      density: rho [kg/m^3].
+      young: Young's modulus E [Pa].
+      poisson: Poisson's ratio nu, -1 < nu < 0.5.
+    """
+
+    density: float
+    young: float
+    poisson: float
+
+    model: ClassVar[str] = "linear_elastic"
+    parameter_names: ClassVar[tuple[str, ...]] = ("density", "young", "poisson")
+    option_names: ClassVar[tuple[str, ...]] = ()
+
+    def check(self, where):
+        check_range(f"{where}.density", self.density, low=0.0)
+        check_range(f"{where}.young", self.young, low=0.0)
+        check_range(f"{where}.poisson", self.poisson, low=-1.0, high=0.5)
+
+    def init_state(self, count, dtype):
+        """History variables: only the accumulated plastic strain (always zero here)."""
+        return {"plastic_strain": jnp.zeros((count,), dtype)}
+
+    def update(self, params, stress, velocity_gradient, dt, state):
+        """One point: rotate sigma with the step's spin, add the elastic increment."""
+        stress = tensors.jaumann_rotate(stress, velocity_gradient, dt)
+        stress = stress + elastic_increment(params, tensors.symmetric(velocity_gradient), dt)
+        return stress, state
+
+    def wave_speed(self, params):
+        return p_wave_speed(params)

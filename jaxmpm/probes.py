@@ -1,0 +1,46 @@
+"""Probes: quantities recorded at every step, as functions of the state.
+
+`make_probes(scene, seeds)` resolves each probe's target once, at setup (the nearest point,
+the body's slice), and returns observe(particles, initial_x) -> {name: (k,) array}.
+"""
+
+import numpy as np
+import jax.numpy as jnp
+
+
+def nearest_point(seeds, at):
+    """Index of the material point nearest to `at` at t = 0."""
+    return int(np.argmin(np.sum((seeds.positions - np.asarray(at)) ** 2, axis=1)))
+
+
+def make_probes(scene, seeds):
+    readers = {}
+    body_slices = {body.name: seeds.slices[index] for index, body in enumerate(scene.bodies)}
+    for probe in scene.probes:
+        if probe.kind == "displacement":
+            readers[probe.name] = _point_displacement(nearest_point(seeds, probe.at))
+        elif probe.kind == "body_displacement":
+            readers[probe.name] = _body_displacement(*body_slices[probe.body])
+        else:
+            raise AssertionError(probe.kind)
+
+    def observe(particles, initial_x):
+        return {name: read(particles, initial_x) for name, read in readers.items()}
+
+    return observe
+
+
+def _point_displacement(index):
+    def read(particles, initial_x):
+        return particles.x[index] - initial_x[index]
+
+    return read
+
+
+def _body_displacement(start, stop):
+    def read(particles, initial_x):
+        mass = particles.mass[start:stop]
+        moved = particles.x[start:stop] - initial_x[start:stop]
+        return jnp.sum(mass[:, None] * moved, axis=0) / jnp.sum(mass)
+
+    return read

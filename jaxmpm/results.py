@@ -1,0 +1,99 @@
+"""Results of a forward run and their HDF5 file (SPEC section 4).
+
+File layout: root attributes `jaxmpm_version`, `scene` (TOML text), `complete` (bool),
+`message`; datasets /time (T,), /probes/NAME (T, k), /snapshots/time (S,),
+/snapshots/BODY/FIELD (S, N_body, ...). Tensor components are ordered (x, y, z), so
+stress[..., 2, 2] is sigma_zz. Files are written to a temporary name and renamed, so a reader
+never sees half a file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+
+@dataclasses.dataclass
+class Result:
+    """A forward run: time (T,) [s]; probes {name: (T, k)}; snapshots {"time": (S,),
+    body: {field: (S, N_body, ...)}}; complete: False if the run stopped early (see message)."""
+
+    scene_toml: str
+    time: np.ndarray
+    probes: dict
+    snapshots: dict
+    complete: bool = True
+    message: str = ""
+
+    @classmethod
+    def from_run(cls, sim, probes, snapshots, steps_done, complete, message):
+        """Assemble the Result of `steps_done` steps from per-output pieces of a run."""
+        probes = {name: np.concatenate(parts)[: steps_done + 1] for name, parts in probes.items()}
+        kept = snapshots[: steps_done // sim.steps_per_output + 1]
+        by_body = {
+            block.name: {
+                field: np.stack([snap[field][block.start : block.stop] for snap in kept])
+                for field in sim.scene.snapshot_fields
+            }
+            for block in sim.structure.bodies
+        }
+        times = np.arange(len(kept)) * sim.steps_per_output * sim.dt
+        return cls(
+            scene_toml=sim.scene.to_toml(),
+            time=sim.time[: steps_done + 1],
+            probes=probes,
+            snapshots={"time": times, **by_body},
+            complete=complete,
+            message=message,
+        )
+
+    def save(self, path) -> Path:
+        """Write the HDF5 file atomically (temporary file, then rename); returns the path."""
+        from jaxmpm import __version__
+
+        path = Path(path)
+        temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+        try:
+            with h5py.File(temporary, "w") as file:
+                file.attrs["jaxmpm_version"] = __version__
+                file.attrs["scene"] = self.scene_toml
+                file.attrs["complete"] = bool(self.complete)
+                file.attrs["message"] = self.message
+                file.create_dataset("time", data=self.time)
+                probes = file.create_group("probes")
+                for name, values in self.probes.items():
+                    probes.create_dataset(name, data=values)
+                snapshots = file.create_group("snapshots")
+                snapshots.create_dataset("time", data=self.snapshots["time"])
+                for body, fields in self.snapshots.items():
+                    if body == "time":
+                        continue
+                    group = snapshots.create_group(body)
+                    for field, values in fields.items():
+                        group.create_dataset(field, data=values, compression="gzip", compression_opts=4)
+            os.replace(temporary, path)
+        finally:
+            if temporary.exists():
+                temporary.unlink()
+        return path
+
+    @classmethod
+    def load(cls, path) -> Result:
+        """Read a file written by `save`."""
+        with h5py.File(path, "r") as file:
+            snapshots = {"time": file["snapshots/time"][()]}
+            for body, group in file["snapshots"].items():
+                if isinstance(group, h5py.Group):
+                    snapshots[body] = {field: data[()] for field, data in group.items()}
+            return cls(
+                scene_toml=str(file.attrs["scene"]),
+                time=file["time"][()],
+                probes={name: data[()] for name, data in file["probes"].items()},
+                snapshots=snapshots,
+                complete=bool(file.attrs["complete"]),
+                message=str(file.attrs.get("message", "")),
+            )

@@ -1,0 +1,246 @@
+"""`Simulation`: a scene split into static structure and a parameter pytree, and forward runs.
+
+    sim = Simulation(scene)
+    sim.params                      # {"sand": {"density": 1800.0, "young": 2e7, ...}, ...}
+    sim.probes(params)              # {name: (T, k)}, differentiable w.r.t. every parameter
+
+The structure (grid, shape function, which materials, step count, time step) is fixed when the
+Simulation is built and compiled once; parameters are traced values, so `jax.grad`, `jax.jvp`
+and `jax.vmap` over them never recompile. The time step is set once, from the scene's own
+parameter values: a parameter change that raises the wave speed does not shorten it.
+"""
+
+from __future__ import annotations
+
+import math
+import time as clock
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmpm import state as state_bits
+from jaxmpm.errors import SceneError, SimulationError
+from jaxmpm.grid import GridLayout
+from jaxmpm.materials import material_parameters
+from jaxmpm.probes import make_probes
+from jaxmpm.results import Result
+from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps
+from jaxmpm.scene import Scene
+from jaxmpm.seeding import seed_bodies
+from jaxmpm.solver import BodyBlock, Structure, make_step
+from jaxmpm.state import Particles
+
+
+def check_dtype(scene: Scene):
+    """float64 scenes need JAX's 64-bit mode, which the library never switches on by itself."""
+    if scene.numerics.dtype == "float64" and not jax.config.jax_enable_x64:
+        raise SceneError(
+            "numerics.dtype = 'float64' needs JAX's 64-bit mode: call "
+            "jax.config.update('jax_enable_x64', True) at the start of the program "
+            "(the jaxmpm command does), or set numerics.dtype = 'float32'."
+        )
+
+
+def time_stepping(scene: Scene):
+    """(dt, steps per output, outputs): dt <= cfl * stable limit (or <= scene.dt), adjusted
+    down so that a whole number of steps fills each output interval; the duration is rounded
+    to a whole number of output intervals."""
+    largest = scene.dt if scene.dt is not None else scene.cfl * scene.stable_dt
+    interval = scene.output_interval
+    per_output = max(1, math.ceil(interval / largest - 1e-9))
+    outputs = max(1, round(scene.duration / interval))
+    if abs(outputs * interval - scene.duration) > 1e-6 * scene.duration:
+        outputs = math.ceil(scene.duration / interval)
+    return interval / per_output, per_output, outputs
+
+
+def snapshot_fields(particles, initial_x, fields):
+    """Host copies of the requested per-point fields of one state: {field: (N, ...)}."""
+    history = particles.history
+    values = {
+        "x": lambda: particles.x,
+        "v": lambda: particles.v,
+        "displacement": lambda: particles.x - initial_x,
+        "stress": lambda: particles.stress,
+        "plastic_strain": lambda: jnp.concatenate([h["plastic_strain"] for h in history]),
+        "volume": lambda: particles.volume,
+        "mass": lambda: particles.mass,
+    }
+    return {field: np.asarray(values[field]()) for field in fields}
+
+
+class Simulation:
+    """The differentiable handle on a scene. See the module docstring."""
+
+    def __init__(self, scene: Scene, checkpointing: Checkpointing = Checkpointing()):
+        check_dtype(scene)
+        self.scene = scene
+        self.checkpointing = checkpointing
+        self.dtype = jnp.dtype(scene.numerics.dtype)
+        self.seeds = seed_bodies(scene)
+        self.dt, self.steps_per_output, self.outputs = time_stepping(scene)
+        self.steps = self.steps_per_output * self.outputs
+        self.time = np.arange(self.steps + 1) * self.dt
+        blocks = tuple(
+            BodyBlock(body.name, body.material, scene.material_of(body), start, stop)
+            for body, (start, stop) in zip(scene.bodies, self.seeds.slices)
+        )
+        self.structure = Structure(
+            layout=GridLayout(scene.grid.origin, scene.grid.cell, scene.grid.cells, scene.numerics.shape),
+            boundaries=scene.grid.boundaries,
+            gravity=scene.gravity,
+            dt=self.dt,
+            flip=scene.numerics.flip,
+            damping=scene.numerics.damping,
+            update=scene.numerics.update,
+            bodies=blocks,
+        )
+        self.params = {name: material_parameters(material) for name, material in scene.materials.items()}
+        self.step = make_step(self.structure)
+        self.observe = make_probes(scene, self.seeds)
+        self._probes = jax.jit(self._probes_from_state)
+        self._advance = jax.jit(self._advance_one_output)
+
+    @property
+    def point_count(self) -> int:
+        return len(self.seeds.positions)
+
+    def cast(self, params):
+        """Parameters as arrays of the scene's dtype (so values of any kind never retrace)."""
+        return jax.tree_util.tree_map(lambda value: jnp.asarray(value, self.dtype), params)
+
+    def initial_state(self, params=None) -> Particles:
+        """The state at t = 0: seeded points at rest (or at their body's velocity), zero stress.
+        Masses follow params[material]["density"], so gradients reach the density."""
+        params = self.cast(self.params if params is None else params)
+        count, dtype = self.point_count, self.dtype
+        masses, velocities, histories = [], [], []
+        for block, body in zip(self.structure.bodies, self.scene.bodies):
+            size = block.stop - block.start
+            volume = jnp.asarray(self.seeds.volumes[block.start : block.stop], dtype)
+            masses.append(params[block.material_name]["density"] * volume)
+            velocities.append(jnp.broadcast_to(jnp.asarray(body.velocity, dtype), (size, 2)))
+            histories.append(block.material.init_state(size, dtype))
+        return Particles(
+            x=jnp.asarray(self.seeds.positions, dtype),
+            v=jnp.concatenate(velocities),
+            stress=jnp.zeros((count, 3, 3), dtype),
+            volume=jnp.asarray(self.seeds.volumes, dtype),
+            mass=jnp.concatenate(masses),
+            history=tuple(histories),
+            flags=jnp.zeros((count,), jnp.int32),
+            step=jnp.zeros((), jnp.int32),
+            error_step=jnp.full((), -1, jnp.int32),
+        )
+
+    # ------------------------------------------------------------------ differentiable
+
+    def _advance_and_observe(self, params, initial_x):
+        def advance(particles):
+            particles = self.step(params, particles)
+            return particles, self.observe(particles, initial_x)
+
+        return advance
+
+    def _probes_from_state(self, params, initial):
+        advance = self._advance_and_observe(params, initial.x)
+        final, histories = checkpointed_rollout(advance, initial, self.steps, self.checkpointing)
+        first = self.observe(initial, initial.x)
+        probes = {name: jnp.concatenate([first[name][None], histories[name]]) for name in first}
+        return probes, final
+
+    def probes(self, params=None, initial: Particles | None = None):
+        """Probe histories {name: (T, k)} with T = steps + 1 (t = 0 included), from `params`
+        (default `self.params`) and an optional initial state (default `initial_state(params)`).
+        Differentiable with respect to params and to the initial state."""
+        params = self.cast(self.params if params is None else params)
+        initial = self.initial_state(params) if initial is None else initial
+        return self._probes(params, initial)[0]
+
+    def final_state(self, params=None, initial: Particles | None = None) -> Particles:
+        """The state after the last step (differentiable, like `probes`)."""
+        params = self.cast(self.params if params is None else params)
+        initial = self.initial_state(params) if initial is None else initial
+        return self._probes(params, initial)[1]
+
+    # ------------------------------------------------------------------ forward runs
+
+    def _advance_one_output(self, params, particles, initial_x):
+        advance = self._advance_and_observe(params, initial_x)
+        return scan_steps(advance, particles, self.steps_per_output)
+
+    def run(self, params=None, initial=None, progress=True, save_to=None, autosave_seconds=60.0):
+        """Forward run with a progress bar; see `simulate`."""
+        from tqdm.auto import tqdm
+
+        params = self.cast(self.params if params is None else params)
+        particles = self.initial_state(params) if initial is None else initial
+        initial_x = particles.x
+        fields = self.scene.snapshot_fields
+        probes = {name: [np.asarray(value)[None]] for name, value in self.observe(particles, initial_x).items()}
+        snapshots = [snapshot_fields(particles, initial_x, fields)]
+        result = None
+        last_save = clock.monotonic()
+        bar = tqdm(total=self.steps, unit="step", disable=not progress, desc=self.scene.name)
+
+        def partial_result(steps_done, message):
+            return Result.from_run(self, probes, snapshots, steps_done, complete=False, message=message)
+
+        try:
+            for output in range(self.outputs):
+                particles, values = self._advance(params, particles, initial_x)
+                error_step = int(particles.error_step)
+                if error_step >= 0:
+                    keep = error_step - output * self.steps_per_output - 1
+                    for name, value in values.items():
+                        probes[name].append(np.asarray(value)[:keep])
+                    message = describe_failure(self, particles)
+                    result = partial_result(error_step - 1, message)
+                    if save_to is not None:
+                        result.save(save_to)
+                    raise SimulationError(message, result)
+                for name, value in values.items():
+                    probes[name].append(np.asarray(value))
+                snapshots.append(snapshot_fields(particles, initial_x, fields))
+                bar.update(self.steps_per_output)
+                if save_to is not None and clock.monotonic() - last_save > autosave_seconds:
+                    partial_result((output + 1) * self.steps_per_output, "run in progress").save(save_to)
+                    last_save = clock.monotonic()
+        except KeyboardInterrupt:
+            done = (len(snapshots) - 1) * self.steps_per_output
+            result = partial_result(done, f"interrupted at t = {done * self.dt:.6g} s")
+            if save_to is not None:
+                result.save(save_to)
+            raise
+        finally:
+            bar.close()
+        result = Result.from_run(self, probes, snapshots, self.steps, complete=True, message="")
+        if save_to is not None:
+            result.save(save_to)
+        return result
+
+
+def describe_failure(sim: Simulation, particles: Particles) -> str:
+    """One sentence: which step, body and point went wrong, and how."""
+    flags = np.asarray(particles.flags)
+    index = int(np.flatnonzero(flags)[0])
+    block = next(b for b in sim.structure.bodies if b.start <= index < b.stop)
+    what = "left the grid" if flags[index] & state_bits.LEFT_GRID else "became non-finite"
+    step = int(particles.error_step)
+    return (
+        f"the run stopped at step {step} (t = {step * sim.dt:.6g} s): point {index - block.start} "
+        f"of body {block.name!r} {what}; the output holds the run up to the step before."
+    )
+
+
+def simulate(scene: Scene, params=None, progress=True, save_to=None, autosave_seconds=60.0) -> Result:
+    """Run a scene forward and return its Result (time, probes, snapshots).
+
+    With `save_to`, the HDF5 file is written atomically every `autosave_seconds` and at the
+    end; a run that stops early (non-finite state, point off the grid, Ctrl-C) leaves a valid
+    file with complete = false. A failed run raises SimulationError, whose `.result` holds the
+    part computed."""
+    return Simulation(scene).run(
+        params=params, progress=progress, save_to=save_to, autosave_seconds=autosave_seconds
+    )

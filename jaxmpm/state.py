@@ -1,0 +1,55 @@
+"""The state carried from step to step: per-point arrays, bodies in contiguous slices."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+LEFT_GRID = 1       # error bit: the point left the grid
+NON_FINITE = 2      # error bit: position, velocity or stress became NaN or Inf
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Particles:
+    """State of N material points (plane strain: per metre of thickness).
+
+    Attributes:
+      x: (N, 2) position [m].
+      v: (N, 2) velocity [m/s].
+      stress: (N, 3, 3) Cauchy stress, tension positive [Pa]; [2, 2] is sigma_zz.
+      volume: (N,) current volume [m^3/m].
+      mass: (N,) mass [kg/m].
+      history: tuple, one dict per body of (n_body,) history variables of its material.
+      flags: (N,) int32 error bits (LEFT_GRID, NON_FINITE); errors inside jit are data.
+      step: () int32 steps taken.
+      error_step: () int32 first step at which any flag was raised, -1 if none.
+    """
+
+    x: jax.Array
+    v: jax.Array
+    stress: jax.Array
+    volume: jax.Array
+    mass: jax.Array
+    history: tuple
+    flags: jax.Array
+    step: jax.Array
+    error_step: jax.Array
+
+    def replace(self, **changes):
+        return dataclasses.replace(self, **changes)
+
+
+def record_errors(particles, outside):
+    """Raise the error bits of points that left the grid or went non-finite."""
+    finite = (
+        jnp.all(jnp.isfinite(particles.x), axis=1)
+        & jnp.all(jnp.isfinite(particles.v), axis=1)
+        & jnp.all(jnp.isfinite(particles.stress), axis=(1, 2))
+    )
+    flags = particles.flags | jnp.where(outside, LEFT_GRID, 0) | jnp.where(finite, 0, NON_FINITE)
+    step = particles.step + 1
+    first = (particles.error_step < 0) & jnp.any(flags != 0)
+    return particles.replace(
+        flags=flags, step=step, error_step=jnp.where(first, step, particles.error_step)
+    )
