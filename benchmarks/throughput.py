@@ -1,0 +1,280 @@
+"""Forward throughput, compile time, gradient/forward ratio and peak memory of an elastic scene.
+
+    python benchmarks/throughput.py              # all cases; prints a table, updates docs/benchmarks.md
+    python benchmarks/throughput.py --no-write   # print only
+    python benchmarks/throughput.py --quick      # fewer repeats, 10k points only (a smoke run)
+
+The scene: a linear-elastic block (rho = 1000 kg/m^3, E = 1 MPa, nu = 0.3) resting on the fixed
+floor of a 1 m x 1 m box under gravity, linear shape functions, 2 x 2 points per cell, MUSL,
+FLIP 0.99, dt = 0.4 h / 40 m/s. Sizes: 10,000 points (0.5 m block, 100^2 cells) and 16,384 points
+(the 0.5 m block on the 128^2 grid of /work/shared/PERFORMANCE.md's table).
+
+Each (size, dtype) case runs in its own subprocess, so that its peak resident memory
+(getrusage maxrss) belongs to that case alone and float32 runs without JAX's 64-bit mode, as a
+float32 user would run it. This is a script, not a test: the figures are printed and written to
+docs/benchmarks.md between marker comments (the rest of that file is left alone).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import re
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "benchmarks.md"
+BEGIN, END = "<!-- throughput:begin -->", "<!-- throughput:end -->"
+
+SIZES = {10_000: 100, 16_384: 128}     # points -> cells across the 1 m box (block is 0.5 m wide)
+STEPS_PER_CALL = 100                   # steps per `sim._advance` call (one output interval)
+GRADIENT_STEPS = 200                   # steps of the rollout differentiated for the ratio
+
+
+# --------------------------------------------------------------------------- the scene
+
+
+def block_scene(cells: int, dtype: str, steps: int):
+    """The benchmark scene: `steps` steps in outputs of STEPS_PER_CALL steps."""
+    from jaxmpm import Body, Boundaries, Grid, LinearElastic, Numerics, Probe, Rectangle, Scene
+
+    cell = 1.0 / cells
+    dt = 0.4 * cell / 40.0            # c_p = 36.7 m/s for these moduli: CFL about 0.37
+    return Scene(
+        name=f"elastic_block_{cells}",
+        grid=Grid(size=(1.0, 1.0), cell=cell, boundaries=Boundaries("slip", "slip", "fixed", "free")),
+        materials={"block": LinearElastic(density=1000.0, young=1.0e6, poisson=0.3)},
+        bodies=(Body("block", "block", Rectangle((0.25, 0.0), (0.75, 0.5))),),
+        duration=dt * steps,
+        dt=dt,
+        output_every=dt * STEPS_PER_CALL,
+        numerics=Numerics(shape="linear", ppc=2, flip=0.99, update="musl", dtype=dtype),
+        probes=(
+            Probe("top", "displacement", at=(0.5, 0.5)),
+            Probe("centre_of_mass", "body_displacement", body="block"),
+        ),
+    )
+
+
+# --------------------------------------------------------------------------- one case (subprocess)
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0   # KiB on Linux
+
+
+def timed(function, *args):
+    """Wall seconds of one call, outputs ready."""
+    import jax
+
+    start = time.perf_counter()
+    jax.block_until_ready(function(*args))
+    return time.perf_counter() - start
+
+
+def run_case(points: int, dtype: str, repeats: int) -> dict:
+    import jax
+
+    if dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    from jaxmpm import Simulation
+
+    cells = SIZES[points]
+    result = {"points": points, "dtype": dtype, "rss_start_mb": None}
+
+    # Forward: one output interval of STEPS_PER_CALL steps (lax.scan), the loop `Simulation.run`
+    # drives. Every repeat starts from the same initial state.
+    sim = Simulation(block_scene(cells, dtype, STEPS_PER_CALL))
+    assert sim.point_count == points, sim.point_count
+    params = sim.cast(sim.params)
+    initial = sim.initial_state(params)
+    jax.block_until_ready(initial)
+    result["rss_start_mb"] = peak_rss_mb()
+    first = timed(sim._advance, params, initial, initial.x)
+    times = [timed(sim._advance, params, initial, initial.x) for _ in range(repeats)]
+    final, _ = sim._advance(params, initial, initial.x)
+    assert int(final.error_step) < 0, "the benchmark scene failed"
+    best, median = min(times), statistics.median(times)
+    result.update(
+        forward_first_s=first,
+        forward_best_s=best,
+        forward_median_s=median,
+        compile_forward_s=first - median,
+        throughput_best=points * STEPS_PER_CALL / best,
+        throughput_median=points * STEPS_PER_CALL / median,
+        rss_forward_mb=peak_rss_mb(),
+    )
+
+    # Reverse mode: d/dE of a scalar of the probe histories of a GRADIENT_STEPS rollout
+    # (checkpointed, default segments), against the same scalar computed forward only.
+    sim = Simulation(block_scene(cells, dtype, GRADIENT_STEPS))
+
+    def loss(young):
+        params = dict(sim.params)
+        params["block"] = dict(params["block"], young=young)
+        probes = sim.probes(params)
+        return jnp.sum(probes["top"][:, 1]) + jnp.sum(probes["centre_of_mass"][:, 1])
+
+    young = jnp.asarray(sim.params["block"]["young"], sim.dtype)
+    forward, gradient = jax.jit(loss), jax.jit(jax.grad(loss))
+    loss_first = timed(forward, young)
+    loss_times = [timed(forward, young) for _ in range(max(2, repeats // 2))]
+    grad_first = timed(gradient, young)
+    grad_times = [timed(gradient, young) for _ in range(max(2, repeats // 3))]
+    value = float(gradient(young))
+    assert value == value and value != 0.0, f"gradient {value}"
+    memory = gradient.lower(young).compile().memory_analysis()
+    loss_median, grad_median = statistics.median(loss_times), statistics.median(grad_times)
+    result.update(
+        loss_median_s=loss_median,
+        grad_median_s=grad_median,
+        compile_loss_s=loss_first - loss_median,
+        compile_grad_s=grad_first - grad_median,
+        grad_ratio=grad_median / loss_median,
+        grad_over_plain_forward=grad_median / (result["forward_median_s"] * GRADIENT_STEPS / STEPS_PER_CALL),
+        grad_temp_mb=getattr(memory, "temp_size_in_bytes", 0) / 2**20 if memory else None,
+        rss_grad_mb=peak_rss_mb(),
+        gradient=value,
+    )
+    return result
+
+
+# --------------------------------------------------------------------------- the report
+
+
+def machine_info() -> dict:
+    import jax
+    import jaxlib
+
+    cpu = "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    memory = "unknown"
+    try:
+        kib = int(re.search(r"MemTotal:\s+(\d+)", Path("/proc/meminfo").read_text()).group(1))
+        memory = f"{kib / 2**20:.0f} GiB"
+    except (OSError, AttributeError):
+        pass
+    try:
+        commit = subprocess.run(
+            ["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True, text=True
+        ).stdout.strip()
+    except OSError:
+        commit = "unknown"
+    return {
+        "date": datetime.date.today().isoformat(),
+        "cpu": cpu,
+        "cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "memory": memory,
+        "python": platform.python_version(),
+        "jax": f"{jax.__version__} (jaxlib {jaxlib.__version__}, {jax.default_backend()})",
+        "commit": commit or "unknown",
+    }
+
+
+def table(results: list[dict], machine: dict) -> str:
+    lines = [
+        f"Machine: {machine['cpu']}, {machine['cores']} cores, {machine['memory']}; "
+        f"Python {machine['python']}, JAX {machine['jax']}; jaxmpm {machine['commit']}; "
+        f"{machine['date']}.",
+        "",
+        "| points | dtype | forward M particle-steps/s (best / median) | compile forward | "
+        "gradient / forward time | compile gradient | peak RSS forward / gradient | XLA temp, gradient |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in results:
+        lines.append(
+            f"| {r['points']:,} | {r['dtype']} | {r['throughput_best'] / 1e6:.2f} / "
+            f"{r['throughput_median'] / 1e6:.2f} | {r['compile_forward_s']:.2f} s | "
+            f"{r['grad_ratio']:.1f}x | {r['compile_grad_s']:.1f} s | "
+            f"{r['rss_forward_mb']:.0f} / {r['rss_grad_mb']:.0f} MB | {r['grad_temp_mb']:.0f} MB |"
+        )
+    return "\n".join(lines)
+
+
+METHOD = f"""\
+Method. Scene: a linear-elastic block (rho = 1000 kg/m^3, E = 1 MPa, nu = 0.3) resting on the
+fixed floor of a 1 m x 1 m box under gravity; linear shape functions, 2 x 2 points per cell, MUSL,
+FLIP 0.99, dt = 0.4 h / (40 m/s); 10,000 points on a 100^2 grid and 16,384 points on the 128^2
+grid of the comparison in PERFORMANCE.md. Forward throughput is points x {STEPS_PER_CALL} /
+wall time of one `Simulation._advance` call ({STEPS_PER_CALL} steps in a `lax.scan`, the
+loop `Simulation.run` drives), outputs ready (`block_until_ready`), after compilation, from the
+same initial state each time; best and median of the repeats. Compile time is the first call
+minus the median steady call. The gradient ratio is the median time of `jax.jit(jax.grad(loss))`
+over `jax.jit(loss)`, where loss(E) sums two probe histories of `Simulation.probes` over a
+{GRADIENT_STEPS}-step rollout (default checkpointing, segments of ceil(sqrt(steps)) steps).
+Each case runs in a fresh process: peak RSS is `getrusage` maxrss after the forward runs and
+after the gradient runs (it includes the ~0.3 GB of the Python and JAX runtime); XLA temp is
+the compiled gradient's `memory_analysis().temp_size_in_bytes`. float32 cases run without JAX's
+64-bit mode, float64 cases with it. Noise on this kind of shared 2-core VM is about +-10 %
+(more when other work runs): compare ratios within one run. Regenerate with
+`python benchmarks/throughput.py`."""
+
+
+def write_doc(text: str):
+    DOC.parent.mkdir(parents=True, exist_ok=True)
+    section = f"{BEGIN}\n## Throughput, compile time, gradient cost, memory\n\n{text}\n\n{METHOD}\n{END}"
+    if DOC.exists():
+        current = DOC.read_text()
+        if BEGIN in current and END in current:
+            head, rest = current.split(BEGIN, 1)
+            tail = rest.split(END, 1)[1]
+            DOC.write_text(head + section + tail)
+            return
+        DOC.write_text(current.rstrip() + "\n\n" + section + "\n")
+        return
+    DOC.write_text(
+        "# Benchmarks\n\nFigures written by the scripts in `benchmarks/`; each script updates its own "
+        "section.\n\n" + section + "\n"
+    )
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--no-write", action="store_true", help="print the table only")
+    parser.add_argument("--quick", action="store_true", help="10k points, fewer repeats")
+    parser.add_argument("--repeats", type=int, default=None, help="forward repeats per case")
+    parser.add_argument("--case", nargs=2, metavar=("POINTS", "DTYPE"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    repeats = args.repeats or (3 if args.quick else 7)
+
+    if args.case:                       # worker: one case, JSON on the last line of stdout
+        print(json.dumps(run_case(int(args.case[0]), args.case[1], repeats)))
+        return
+
+    sizes = [10_000] if args.quick else list(SIZES)
+    results, start = [], time.perf_counter()
+    for points in sizes:
+        for dtype in ("float32", "float64"):
+            print(f"case {points:,} points {dtype} ...", file=sys.stderr, flush=True)
+            command = [sys.executable, __file__, "--case", str(points), dtype, "--repeats", str(repeats)]
+            done = subprocess.run(command, capture_output=True, text=True)
+            if done.returncode != 0:
+                sys.stderr.write(done.stderr)
+                raise SystemExit(f"case {points} {dtype} failed")
+            results.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    text = table(results, machine_info())
+    print(text)
+    print(f"\n(total {time.perf_counter() - start:.0f} s)", file=sys.stderr)
+    if not args.no_write:
+        write_doc(text)
+        print(f"wrote {DOC.relative_to(ROOT)}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()

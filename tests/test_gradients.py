@@ -1,0 +1,110 @@
+"""Gradients of probe histories against central finite differences, and no recompiling.
+
+VALIDATION.md section 8: every differentiable output is checked against central differences
+in float64 with a relative step of about 1e-6 of the parameter.
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxmpm
+from tests.scenes import BLOCK
+
+
+@functools.lru_cache
+def shared_simulation(update="musl"):
+    """One compiled simulation per update scheme, shared by the tests that only read it."""
+    return small_simulation(update)
+
+
+def small_simulation(update="musl"):
+    scene = jaxmpm.Scene.from_toml(BLOCK.replace("[numerics]", f'[numerics]\nupdate = "{update}"'))
+    return jaxmpm.Simulation(scene)
+
+
+def settlement_measure(sim, params):
+    """A scalar that depends on the whole history: the summed vertical top displacement."""
+    return jnp.sum(sim.probes(params)["top"][:, 1])
+
+
+def central_difference(function, params, material, name, relative_step=1e-6):
+    step = relative_step * params[material][name]
+
+    def shifted(delta):
+        moved = jax.tree_util.tree_map(lambda value: value, params)
+        moved[material] = dict(params[material], **{name: params[material][name] + delta})
+        return float(function(moved))
+
+    return (shifted(step) - shifted(-step)) / (2.0 * step)
+
+
+@pytest.mark.parametrize("update", ["musl", "usl"])
+@pytest.mark.parametrize("name", ["young", "density", "poisson"])
+def test_probe_gradient_matches_central_differences(update, name):
+    sim = shared_simulation(update)
+    params = sim.params
+    gradient = jax.grad(lambda p: settlement_measure(sim, p))(params)["soil"][name]
+    reference = central_difference(lambda p: settlement_measure(sim, p), params, "soil", name)
+    assert np.isfinite(gradient) and abs(reference) > 0.0
+    np.testing.assert_allclose(gradient, reference, rtol=1e-5)
+
+
+def test_gradients_are_finite_with_empty_nodes_and_fixed_edges():
+    # Most of the grid is empty (zero-mass nodes) and two edges are constrained: the
+    # guarded p / m must give finite gradients everywhere (PERFORMANCE.md: a peer returned
+    # NaN gradients exactly here).
+    sim = shared_simulation()
+    gradient = jax.grad(lambda p: jnp.sum(sim.final_state(p).v ** 2))(sim.params)
+    assert all(np.isfinite(value) for value in jax.tree_util.tree_leaves(gradient))
+
+
+def test_changing_parameters_never_retraces():
+    sim = small_simulation()
+    traces = []
+    step = sim.step
+
+    def counting_step(params, particles):
+        traces.append(1)
+        return step(params, particles)
+
+    sim.step = counting_step
+    for young in (1.0e6, 2.0e6, np.float64(3.0e6), jnp.asarray(4.0e6)):
+        params = {"soil": dict(sim.params["soil"], young=young)}
+        sim.probes(params)["top"].block_until_ready()
+    assert len(traces) == 1
+
+    loss = jax.jit(jax.grad(lambda p: settlement_measure(sim, p)))
+    loss(sim.params)
+    traced_for_gradient = len(traces)
+    for density in (1700.0, 1900.0):
+        loss({"soil": dict(sim.params["soil"], density=density)})
+    assert len(traces) == traced_for_gradient
+
+    batched = jax.vmap(lambda young: settlement_measure(sim, {"soil": dict(sim.params["soil"], young=young)}))
+    batched(jnp.array([1.0e6, 2.0e6]))
+    traced_for_batch = len(traces)
+    batched(jnp.array([3.0e6, 5.0e6]))
+    assert len(traces) == traced_for_batch
+
+
+def test_vmap_over_parameters_matches_single_runs():
+    sim = shared_simulation()
+    youngs = jnp.array([1.0e6, 3.0e6])
+    batched = jax.vmap(lambda young: settlement_measure(sim, {"soil": dict(sim.params["soil"], young=young)}))(youngs)
+    singles = [settlement_measure(sim, {"soil": dict(sim.params["soil"], young=y)}) for y in youngs]
+    np.testing.assert_allclose(batched, singles, rtol=1e-12)
+
+
+@pytest.mark.parametrize("segment", [1, 3, None, 10_000])
+def test_checkpoint_segments_do_not_change_values_or_gradients(segment):
+    scene = jaxmpm.Scene.from_toml(BLOCK)
+    reference = jaxmpm.Simulation(scene, jaxmpm.Checkpointing(segment=1))
+    sim = jaxmpm.Simulation(scene, jaxmpm.Checkpointing(segment=segment))
+    value, gradient = jax.value_and_grad(lambda p: settlement_measure(sim, p))(sim.params)
+    value_ref, gradient_ref = jax.value_and_grad(lambda p: settlement_measure(reference, p))(sim.params)
+    np.testing.assert_allclose(value, value_ref, rtol=1e-12)
+    np.testing.assert_allclose(gradient["soil"]["young"], gradient_ref["soil"]["young"], rtol=1e-10)

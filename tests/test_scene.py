@@ -1,0 +1,97 @@
+"""Scene files: round trip, and one clear error for every class of bad input (SPEC 7, 8)."""
+
+import pytest
+
+import jaxmpm
+from jaxmpm import SceneError
+from tests.scenes import BLOCK
+
+
+def test_round_trip_is_equal():
+    scene = jaxmpm.Scene.from_toml(BLOCK)
+    again = jaxmpm.Scene.from_toml(scene.to_toml())
+    assert again == scene
+    assert again.to_toml() == scene.to_toml()
+
+
+def test_round_trip_of_every_example(tmp_path):
+    from pathlib import Path
+
+    for path in sorted(Path(__file__).parents[1].glob("examples/*.toml")):
+        scene = jaxmpm.load_scene(path)
+        assert jaxmpm.Scene.from_toml(scene.to_toml()) == scene, path.name
+
+
+def test_polygon_round_trip_and_defaults():
+    text = BLOCK.replace(
+        'region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }',
+        'region = { polygon = [[0.0, 0.0], [0.4, 0.0], [0.4, 0.1], [0.0, 0.2]] }',
+    )
+    scene = jaxmpm.Scene.from_toml(text)
+    assert isinstance(scene.bodies[0].region, jaxmpm.Polygon)
+    assert scene.numerics.update == "musl" and scene.cfl == 0.4
+    assert jaxmpm.Scene.from_toml(scene.to_toml()) == scene
+
+
+def test_with_value_changes_one_value():
+    scene = jaxmpm.Scene.from_toml(BLOCK)
+    assert scene.with_value("soil.young", 2e6).materials["soil"].young == 2e6
+    assert scene.with_value("grid.cell", 0.025).grid.cell == 0.025
+    assert scene.with_value("scene.duration", 0.5).duration == 0.5
+    assert scene.with_value("bodies.block.velocity", [1.0, 0.0]).bodies[0].velocity == (1.0, 0.0)
+
+
+BAD_INPUTS = [
+    # (what is changed, replacement, words the message must contain)
+    ("unknown key", ("cell = 0.05", "cell = 0.05\ncel = 0.1"), ["grid.cel", "did you mean 'cell'"]),
+    ("unknown section key", ("[numerics]", "[numerics]\nshape_function = 'linear'"), ["numerics.shape_function"]),
+    ("wrong type", ("duration = 0.01", 'duration = "long"'), ["scene.duration", "'long'", "number"]),
+    ("wrong vector", ("size = [0.4, 0.3]", "size = [0.4]"), ["grid.size", "[0.4]"]),
+    ("out of range", ("poisson = 0.3", "poisson = 0.5"), ["materials.soil.poisson", "0.5", "range"]),
+    ("negative modulus", ("young = 1.0e6", "young = -1.0"), ["materials.soil.young", "-1.0"]),
+    ("zero ppc", ("ppc = 2", "ppc = 0"), ["numerics.ppc", "0"]),
+    ("float ppc", ("ppc = 2", "ppc = 2.5"), ["numerics.ppc", "2.5", "integer"]),
+    ("bad choice", ('bottom = "fixed"', 'bottom = "glued"'), ["grid.boundaries.bottom", "'glued'"]),
+    ("missing", ("duration = 0.01\n", ""), ["scene.duration", "missing"]),
+    ("body outside grid", ("[0.4, 0.2]", "[0.5, 0.2]"), ["bodies[0].region", "[0.5, 0.0]", "outside the grid"]),
+    ("unknown material", ('material = "soil"', 'material = "sand"'), ["bodies[0].material", "'sand'"]),
+    ("grid not whole cells", ("cell = 0.05", "cell = 0.07"), ["grid.size", "grid.cell = 0.07"]),
+    ("dt above limit", ("duration = 0.01", "duration = 0.01\ndt = 0.01"), ["scene.dt", "0.01", "stable limit"]),
+    ("unknown model", ('model = "linear_elastic"', 'model = "rubber"'), ["materials.soil.model", "'rubber'"]),
+    ("not built yet", ('[numerics]', '[numerics]\nshape = "bspline2"'), ["numerics.shape", "'bspline2'", "not available yet"]),
+    ("bad TOML", ("[grid]", "[grid"), ["not valid TOML"]),
+    ("unknown probe body", ('body = "block"', 'body = "wall"'), ["probes[1].body", "'wall'"]),
+]
+
+
+@pytest.mark.parametrize("change, replacement, words", BAD_INPUTS, ids=[case[0] for case in BAD_INPUTS])
+def test_bad_input_gives_one_clear_sentence(change, replacement, words):
+    old, new = replacement
+    assert old in BLOCK
+    with pytest.raises(SceneError) as caught:
+        jaxmpm.Scene.from_toml(BLOCK.replace(old, new, 1))
+    message = str(caught.value)
+    assert "\n" not in message
+    for word in words:
+        assert word in message, (word, message)
+
+
+def test_overlapping_bodies_are_an_error_before_compiling():
+    text = BLOCK + """
+[[bodies]]
+name = "second"
+material = "soil"
+region = { rectangle = [[0.1, 0.1], [0.3, 0.25]] }
+"""
+    scene = jaxmpm.Scene.from_toml(text)
+    with pytest.raises(SceneError, match=r"bodies\[1\] \('second'\) overlaps body 'block'"):
+        jaxmpm.Simulation(scene)
+
+
+def test_float64_scene_without_x64_is_a_clear_error(monkeypatch):
+    import jax
+
+    scene = jaxmpm.Scene.from_toml(BLOCK)
+    with jax.enable_x64(False):
+        with pytest.raises(SceneError, match="numerics.dtype = 'float64' needs JAX's 64-bit mode"):
+            jaxmpm.Simulation(scene)
