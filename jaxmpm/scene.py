@@ -18,7 +18,7 @@ import tomli_w
 
 from jaxmpm.errors import SceneError
 from jaxmpm.materials import MODELS
-from jaxmpm.materials.base import check_range, material_parameters
+from jaxmpm.materials.base import check_range, material_parameters, number_fields
 
 REQUIRED = object()
 BOUNDARY_KINDS = ("fixed", "slip", "free")
@@ -300,15 +300,13 @@ def convert(key, value, kind):
 def _read_material(table: _Table):
     model = table.get("model", "str", choices=tuple(MODELS))
     cls = MODELS[model]
-    names = cls.parameter_names + cls.option_names
-    table.known = ["model", *names]
-    defaults = {field.name: field.default for field in dataclasses.fields(cls)}
+    numbers = number_fields(cls)
+    table.known = ["model", *numbers, *cls.option_names]
     values = {}
-    for name in names:
-        default = defaults[name]
-        default = REQUIRED if default is dataclasses.MISSING else default
-        kind = "float" if name in cls.parameter_names else "any"
-        values[name] = table.get(name, kind, default)
+    for field in dataclasses.fields(cls):
+        default = REQUIRED if field.default is dataclasses.MISSING else field.default
+        kind = "float" if field.name in numbers else "str"
+        values[field.name] = table.get(field.name, kind, default)
     table.finish()
     return cls(**values)
 
@@ -463,8 +461,7 @@ def scene_to_dict(scene: Scene) -> dict:
     materials = {
         name: _drop_none(
             {"model": material.model}
-            | {key: getattr(material, key) for key in material.parameter_names}
-            | {key: getattr(material, key) for key in material.option_names}
+            | {field.name: getattr(material, field.name) for field in dataclasses.fields(material)}
         )
         for name, material in scene.materials.items()
     }

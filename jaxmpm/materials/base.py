@@ -2,10 +2,12 @@
 
 A material is a frozen dataclass holding what the scene file says (SI units, angles in
 degrees). Its fields split in two:
-- `parameter_names`: dynamic values, handed to `update` in a `params` dict so that `jax.grad`
-  and `jax.vmap` act on them without recompiling;
-- `option_names`: static choices (e.g. the Drucker-Prager cone) that decide which code is
-  compiled; changing one recompiles.
+- `option_names`: static string choices (e.g. the Drucker-Prager cone) that decide which code
+  is compiled; changing one recompiles. Whether an optional number is given at all (e.g.
+  `fluidity`) is static too;
+- every other field is a number; those in `parameter_names` are dynamic values, handed to
+  `update` in a `params` dict so that `jax.grad` and `jax.vmap` act on them without
+  recompiling.
 
 `update(params, stress, L, dt, state) -> (stress, state)` is written for ONE material point
 (3x3 stress, 3x3 velocity gradient L_ij = dv_i/dx_j) and vmapped by the solver. It must read
@@ -13,6 +15,7 @@ physical values only from `params`, never from `self`, or they would be baked in
 compiled code.
 """
 
+import dataclasses
 import math
 
 import jax
@@ -41,6 +44,11 @@ def check_range(key, value, low=None, high=None, low_inclusive=False, high_inclu
         right = "]" if high_inclusive else ")"
         span = f"{left}{'-inf' if low is None else low}, {'inf' if high is None else high}{right}"
         raise SceneError(f"{key} = {value!r} is out of range: it must lie in {span}.")
+
+
+def number_fields(cls):
+    """Names of the numeric fields of a material class (all fields but its options)."""
+    return tuple(field.name for field in dataclasses.fields(cls) if field.name not in cls.option_names)
 
 
 def material_parameters(material):

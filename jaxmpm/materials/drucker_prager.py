@@ -1,0 +1,193 @@
+"""Drucker-Prager sand: elastic-perfectly plastic, or elastic-viscoplastic (Perzyna).
+
+The paper's model (Wieckowski, eq. 2 and the viscoplastic variant), non-cohesive:
+  yield          f = q - m p,   m = 18 sin(phi) / (9 - sin^2 phi) by default ("paper" cone;
+                 the mean of the triaxial compression and extension cones; see CONES);
+  potential      g = q - m_psi p (g = q, no dilatancy, at the default psi = 0);
+  plastic        d^p = lambda_dot dg/dsigma, lambda_dot >= 0 when f = 0;
+  viscoplastic   d^vp = gamma <Phi> dg/dsigma, Phi = ((q - m p) / (m p))^N, when `fluidity`
+                 (gamma [1/s]) is given, with `exponent` N > 0.
+
+Stress update (one point, one step): rotate the stress with the step's spin (Jaumann,
+Hughes-Winget), add the elastic trial increment, then correct. With a plastic multiplier
+increment dl the trial state (p*, q*) moves to
+  q = q* - 3 G dl,   p = p* + K m_psi dl,   f = f* - H dl,   H = 3 G + K m m_psi
+(with psi = 0 the return is radial in the deviatoric plane at fixed p).
+- rate-independent: dl = f* / H, which lands exactly on f = 0;
+- Perzyna, backward Euler: dl = gamma dt Phi(p, q). Writing dl = x f*/H with x in [0, 1]
+  turns it into one monotone scalar equation, solved in log form
+      log x + log(f*/H) - log(gamma dt) - N [log(1 - x) + log(f* / (m p(x)))] = 0
+  by a fixed number of bisection steps (stable for every gamma dt and N: x -> 1 is the
+  plastic limit, x -> 0 the elastic one); its gradient comes from the implicit function
+  theorem, not from the bisection.
+- apex: sand carries no tension. If the return along the flow direction cannot reach the cone
+  (q* K m_psi + 3 G p* <= 0, i.e. p* <= 0 for psi = 0), the stress returns to the apex,
+  sigma = 0.
+History variable: `plastic_strain`, the accumulated equivalent plastic strain (sum of dl).
+"""
+
+import dataclasses
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+
+from jaxmpm import tensors
+from jaxmpm.errors import SceneError
+from jaxmpm.materials.base import check_range, is_concrete
+from jaxmpm.materials.linear_elastic import bulk_and_shear_moduli, elastic_increment, p_wave_speed
+
+CONES = {
+    # m as a function of sin(angle); each matches Mohr-Coulomb in one stress state.
+    "paper": lambda s: 18.0 * s / (9.0 - s * s),           # mean of compression and extension
+    "compression": lambda s: 6.0 * s / (3.0 - s),          # triaxial compression corners
+    "extension": lambda s: 6.0 * s / (3.0 + s),            # triaxial extension corners
+    "plane_strain": lambda s: jnp.sqrt(3.0) * s,           # plane strain, zero dilatancy
+}
+BISECTION_STEPS = {4: 40, 8: 80}   # by float size in bytes: enough to reach round-off in x
+TINY = 1e-30
+
+
+def cone_slope(cone, angle_degrees):
+    """m of the chosen cone for a friction (or dilation) angle in degrees."""
+    return CONES[cone](jnp.sin(jnp.deg2rad(angle_degrees)))
+
+
+def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent):
+    """x in [0, 1] with dl = x f*/H solving the backward-Euler Perzyna equation (see module).
+
+    trial_overstress f* > 0; hardening H; pressure_trial p* > 0; dilation_rate K m_psi;
+    m the cone slope; rate = gamma dt; exponent N. Value from bisection, gradient from the
+    implicit function theorem.
+    """
+    largest = trial_overstress / hardening
+
+    def residual(x):
+        pressure = pressure_trial + dilation_rate * largest * x
+        overstress = jnp.log(trial_overstress) - jnp.log(jnp.maximum(m * pressure, TINY))
+        return (
+            jnp.log(x) + jnp.log(largest) - jnp.log(rate)
+            - exponent * (jnp.log1p(-x) + overstress)
+        )
+
+    def bisect(bounds, _):
+        low, high = bounds
+        middle = 0.5 * (low + high)
+        above = residual(middle) > 0.0
+        return (jnp.where(above, low, middle), jnp.where(above, middle, high)), None
+
+    dtype = jnp.result_type(trial_overstress)
+    steps = BISECTION_STEPS[jnp.dtype(dtype).itemsize]
+    zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
+    (low, high), _ = jax.lax.scan(bisect, (zero, one), None, length=steps)
+    root = jax.lax.stop_gradient(0.5 * (low + high))
+    # Implicit function theorem: dx/dtheta = -(dR/dtheta) / (dR/dx) at the root.
+    slope = jax.lax.stop_gradient(jax.grad(residual)(root))
+    value = residual(root)
+    return root - (value - jax.lax.stop_gradient(value)) / slope
+
+
+@dataclasses.dataclass(frozen=True)
+class DruckerPrager:
+    """Non-cohesive Drucker-Prager sand (see the module docstring for the equations).
+
+    Attributes:
+      density: rho [kg/m^3]; young: E [Pa]; poisson: nu.
+      friction_angle: phi [degrees], 0 <= phi < 90.
+      dilation_angle: psi [degrees], 0 <= psi <= phi (0: the paper's g = q).
+      cone: which m(phi): "paper" | "compression" | "extension" | "plane_strain" (static).
+      fluidity: Perzyna gamma [1/s]; None = rate-independent (static: present or not).
+      exponent: Perzyna N > 0 (used only with fluidity).
+    """
+
+    density: float
+    young: float
+    poisson: float
+    friction_angle: float
+    dilation_angle: float = 0.0
+    cone: str = "paper"
+    fluidity: float | None = None
+    exponent: float = 1.0
+
+    model: ClassVar[str] = "drucker_prager"
+    option_names: ClassVar[tuple[str, ...]] = ("cone",)
+
+    @property
+    def parameter_names(self):
+        base = ("density", "young", "poisson", "friction_angle", "dilation_angle")
+        return base + (("fluidity", "exponent") if self.viscoplastic else ())
+
+    @property
+    def viscoplastic(self):
+        return self.fluidity is not None
+
+    def check(self, where):
+        check_range(f"{where}.density", self.density, low=0.0)
+        check_range(f"{where}.young", self.young, low=0.0)
+        check_range(f"{where}.poisson", self.poisson, low=-1.0, high=0.5)
+        check_range(f"{where}.friction_angle", self.friction_angle, low=0.0, high=90.0, low_inclusive=True)
+        check_range(f"{where}.dilation_angle", self.dilation_angle, low=0.0, high=90.0, low_inclusive=True)
+        if self.cone not in CONES:
+            options = ", ".join(repr(name) for name in CONES)
+            raise SceneError(f"{where}.cone = {self.cone!r} is not one of {options}.")
+        concrete = is_concrete(self.dilation_angle) and is_concrete(self.friction_angle)
+        if concrete and self.dilation_angle > self.friction_angle:
+            raise SceneError(
+                f"{where}.dilation_angle = {self.dilation_angle!r} exceeds the friction angle "
+                f"{self.friction_angle!r}."
+            )
+        if self.viscoplastic:
+            check_range(f"{where}.fluidity", self.fluidity, low=0.0)
+            check_range(f"{where}.exponent", self.exponent, low=0.0)
+        elif self.exponent != 1.0:
+            raise SceneError(
+                f"{where}.exponent = {self.exponent!r} is given without fluidity: give "
+                "fluidity (1/s) for the viscoplastic model, or remove exponent."
+            )
+
+    def init_state(self, count, dtype):
+        return {"plastic_strain": jnp.zeros((count,), dtype)}
+
+    def wave_speed(self, params):
+        return p_wave_speed(params)
+
+    def update(self, params, stress, velocity_gradient, dt, state):
+        """One point: Jaumann rotation, elastic trial, plastic / viscoplastic correction."""
+        stress = tensors.jaumann_rotate(stress, velocity_gradient, dt)
+        trial = stress + elastic_increment(params, tensors.symmetric(velocity_gradient), dt)
+        stress, increment = self.correct(params, trial, dt)
+        return stress, {"plastic_strain": state["plastic_strain"] + increment}
+
+    def correct(self, params, trial, dt):
+        """Return the trial stress to the admissible set: (stress, plastic multiplier dl)."""
+        bulk, shear = bulk_and_shear_moduli(params["young"], params["poisson"])
+        m = cone_slope(self.cone, params["friction_angle"])
+        dilation_rate = bulk * cone_slope(self.cone, params["dilation_angle"])
+        pressure, deviatoric = tensors.pressure(trial), tensors.von_mises(trial)
+        overstress = deviatoric - m * pressure
+        hardening = 3.0 * shear + m * dilation_rate
+
+        yielding = (overstress > 0.0) | (pressure < 0.0)
+        to_apex = yielding & (deviatoric * dilation_rate + 3.0 * shear * pressure <= 0.0)
+        to_cone = yielding & ~to_apex
+        # Safe stand-ins where a branch is not taken, so no branch makes NaN (double where).
+        safe_overstress = jnp.where(to_cone, overstress, 1.0)
+        safe_pressure = jnp.where(to_cone, pressure, 1.0)
+        safe_deviatoric = jnp.where(to_cone, deviatoric, 1.0)
+
+        fraction = 1.0
+        if self.viscoplastic:
+            safe_rate = jnp.where(to_cone, params["fluidity"] * dt, 1.0)
+            fraction = perzyna_fraction(
+                safe_overstress, hardening, safe_pressure, dilation_rate, m, safe_rate, params["exponent"]
+            )
+        multiplier = fraction * safe_overstress / hardening
+        new_deviatoric = safe_deviatoric - 3.0 * shear * multiplier
+        new_pressure = safe_pressure + dilation_rate * multiplier
+        identity = jnp.eye(3, dtype=trial.dtype)
+        returned = tensors.deviator(trial) * (new_deviatoric / safe_deviatoric) - new_pressure * identity
+
+        stress = jnp.where(to_cone, returned, jnp.where(to_apex, jnp.zeros_like(trial), trial))
+        apex_multiplier = deviatoric / (3.0 * shear)
+        increment = jnp.where(to_cone, multiplier, jnp.where(to_apex, apex_multiplier, 0.0))
+        return stress, increment
