@@ -8,16 +8,18 @@ __version__ = "0.1.0"
 
 from jaxmpm.driver import drive
 from jaxmpm.errors import SceneError, SimulationError
-from jaxmpm.materials import LinearElastic
+from jaxmpm.materials import DruckerPrager, LinearElastic
 from jaxmpm.results import Result
 from jaxmpm.rollout import Checkpointing
-from jaxmpm.scene import Body, Boundaries, Grid, Numerics, Polygon, Probe, Rectangle, Scene, load_scene
+from jaxmpm.scene import Body, Boundaries, Geostatic, Grid, Numerics, Polygon, Probe, Rectangle, Scene, load_scene
 from jaxmpm.simulation import Simulation, simulate
 
 __all__ = [
     "Body",
     "Boundaries",
     "Checkpointing",
+    "DruckerPrager",
+    "Geostatic",
     "Grid",
     "LinearElastic",
     "Numerics",

@@ -38,6 +38,17 @@ class GridLayout:
     def stencil(self, positions):
         return self.shape.stencil(self.local(positions), self.cells, self.cell)
 
+    def node_offsets(self, base, positions, support):
+        """x_I - x_p for each point's s x s stencil nodes: (N, s, s, 2) [m]."""
+        offsets = jnp.arange(support, dtype=positions.dtype)
+        corner = jnp.asarray(self.origin, positions.dtype) + base * self.cell - positions
+        along_x = corner[:, None, 0] + offsets * self.cell
+        along_y = corner[:, None, 1] + offsets * self.cell
+        shape = (len(positions), support, support)
+        return jnp.stack(
+            [jnp.broadcast_to(along_x[:, :, None], shape), jnp.broadcast_to(along_y[:, None, :], shape)], axis=-1
+        )
+
     def outside(self, positions):
         """(N,) bool: the point has left the grid."""
         local = self.local(positions)

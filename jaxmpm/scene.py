@@ -28,7 +28,6 @@ PROBE_KINDS = ("displacement", "body_displacement")
 NOT_YET = {
     "geometry": ("axisymmetric",),
     "shape": ("gimp", "bspline2"),
-    "transfer": ("apic",),
 }
 
 
@@ -98,14 +97,24 @@ class Polygon:
 
 
 @dataclasses.dataclass(frozen=True)
+class Geostatic:
+    """Initial geostatic stress: sigma_v from the depth below the body's top, sigma_h = K0 sigma_v;
+    k0 = "jaky" (1 - sin phi of the body's friction angle) or a number."""
+
+    k0: float | str = "jaky"
+
+
+@dataclasses.dataclass(frozen=True)
 class Body:
-    """A region filled with material points of one material."""
+    """A region filled with material points of one material, at rest or moving at `velocity`
+    [m/s], with zero initial stress or a `Geostatic` one."""
 
     name: str
     material: str
     region: Rectangle | Polygon
     velocity: tuple[float, float] = (0.0, 0.0)
     kinematics: str = "free"
+    initial_stress: Geostatic | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -338,10 +347,20 @@ def _read_body(table: _Table):
     if kind != "free":
         raise SceneError(f"{kinematics.key('type')} = {kind!r} is not available yet in jaxmpm.")
     kinematics.finish()
+    initial_stress = None
     if "initial_stress" in table.data:
-        raise SceneError(f"{table.key('initial_stress')} is not available yet in jaxmpm.")
+        stress_table = table.table("initial_stress")
+        stress_table.known = ["geostatic"]
+        geostatic = stress_table.table("geostatic")
+        geostatic.known = ["k0"]
+        k0 = geostatic.get("k0", "any", "jaky")
+        if k0 != "jaky":
+            k0 = convert(geostatic.key("k0"), k0, "float")
+        geostatic.finish()
+        stress_table.finish()
+        initial_stress = Geostatic(k0)
     table.finish()
-    return Body(name, material, region, velocity, kind)
+    return Body(name, material, region, velocity, kind, initial_stress)
 
 
 def _read_probe(table: _Table):
@@ -404,7 +423,7 @@ def scene_from_dict(data) -> Scene:
     default = Numerics()
     numerics = Numerics(
         shape=options.get("shape", "str", default.shape, choices=("linear",)),
-        transfer=options.get("transfer", "str", default.transfer, choices=("flip",)),
+        transfer=options.get("transfer", "str", default.transfer, choices=("flip", "apic")),
         flip=options.get("flip", "float", default.flip),
         ppc=options.get("ppc", "int", default.ppc),
         dtype=options.get("dtype", "str", default.dtype, choices=("float64", "float32")),
@@ -471,15 +490,16 @@ def scene_to_dict(scene: Scene) -> dict:
             region = {"rectangle": [list(body.region.lower), list(body.region.upper)]}
         else:
             region = {"polygon": [list(vertex) for vertex in body.region.vertices]}
-        bodies.append(
-            {
-                "name": body.name,
-                "material": body.material,
-                "region": region,
-                "velocity": list(body.velocity),
-                "kinematics": {"type": body.kinematics},
-            }
-        )
+        entry = {
+            "name": body.name,
+            "material": body.material,
+            "region": region,
+            "velocity": list(body.velocity),
+            "kinematics": {"type": body.kinematics},
+        }
+        if body.initial_stress is not None:
+            entry["initial_stress"] = {"geostatic": {"k0": body.initial_stress.k0}}
+        bodies.append(entry)
     probes = [
         _drop_none(
             {
@@ -565,6 +585,17 @@ def check_scene(scene: Scene):
                 )
         elif len(vertices) < 3:
             raise SceneError(f"{where}.region.polygon has {len(vertices)} vertices: it needs at least 3.")
+        if body.initial_stress is not None:
+            k0 = body.initial_stress.k0
+            key = f"{where}.initial_stress.geostatic.k0"
+            if k0 == "jaky":
+                if not hasattr(scene.materials[body.material], "friction_angle"):
+                    raise SceneError(
+                        f"{key} = 'jaky' needs a friction angle, which material "
+                        f"{body.material!r} has not: give k0 as a number."
+                    )
+            else:
+                check_range(key, k0, low=0.0)
         for vertex in vertices:
             if not _inside_grid(grid, vertex):
                 raise SceneError(

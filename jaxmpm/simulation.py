@@ -22,6 +22,7 @@ import numpy as np
 from jaxmpm import state as state_bits
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.grid import GridLayout
+from jaxmpm.initial_stress import depth_below_top, geostatic_stress, jaky_k0
 from jaxmpm.materials import material_parameters
 from jaxmpm.probes import make_probes
 from jaxmpm.results import Result
@@ -91,6 +92,7 @@ class Simulation:
             boundaries=scene.grid.boundaries,
             gravity=scene.gravity,
             dt=self.dt,
+            transfer=scene.numerics.transfer,
             flip=scene.numerics.flip,
             damping=scene.numerics.damping,
             update=scene.numerics.update,
@@ -115,17 +117,20 @@ class Simulation:
         Masses follow params[material]["density"], so gradients reach the density."""
         params = self.cast(self.params if params is None else params)
         count, dtype = self.point_count, self.dtype
-        masses, velocities, histories = [], [], []
+        masses, velocities, stresses, histories = [], [], [], []
         for block, body in zip(self.structure.bodies, self.scene.bodies):
             size = block.stop - block.start
+            material = params[block.material_name]
             volume = jnp.asarray(self.seeds.volumes[block.start : block.stop], dtype)
-            masses.append(params[block.material_name]["density"] * volume)
+            masses.append(material["density"] * volume)
             velocities.append(jnp.broadcast_to(jnp.asarray(body.velocity, dtype), (size, 2)))
+            stresses.append(self.body_initial_stress(body, block, material))
             histories.append(block.material.init_state(size, dtype))
         return Particles(
             x=jnp.asarray(self.seeds.positions, dtype),
             v=jnp.concatenate(velocities),
-            stress=jnp.zeros((count, 3, 3), dtype),
+            affine=jnp.zeros((count, 2, 2), dtype),
+            stress=jnp.concatenate(stresses),
             volume=jnp.asarray(self.seeds.volumes, dtype),
             mass=jnp.concatenate(masses),
             history=tuple(histories),
@@ -133,6 +138,17 @@ class Simulation:
             step=jnp.zeros((), jnp.int32),
             error_step=jnp.full((), -1, jnp.int32),
         )
+
+    def body_initial_stress(self, body, block, material):
+        """(n_body, 3, 3) initial stress of one body: zero, or geostatic from its params."""
+        size = block.stop - block.start
+        if body.initial_stress is None:
+            return jnp.zeros((size, 3, 3), self.dtype)
+        k0 = body.initial_stress.k0
+        k0 = jaky_k0(material["friction_angle"]) if k0 == "jaky" else k0
+        spacing = self.scene.grid.cell / self.scene.numerics.ppc
+        depth = depth_below_top(self.seeds.positions[block.start : block.stop], spacing)
+        return geostatic_stress(jnp.asarray(depth, self.dtype), material["density"], self.scene.gravity[1], k0)
 
     # ------------------------------------------------------------------ differentiable
 

@@ -12,6 +12,14 @@ computed from nodal velocities re-projected from the updated points, so a node t
 point with a tiny weight cannot inject a huge velocity into the stress (the cell-crossing
 weakness of USL). `update = "usl"` uses the grid velocity directly (one scatter fewer).
 
+Transfers: FLIP/PIC blend (`flip` = 1 pure FLIP, 0 pure PIC), or APIC (Jiang et al. 2015):
+points carry an affine velocity C_p; momentum goes to the grid as m_p N_I (v_p + C_p (x_I - x_p))
+and comes back as v_p = sum N_I v_I, C_p = sum v_I (x) grad N_I (for multilinear shape functions
+this is B_p D_p^-1 exactly). C_p is the velocity gradient that drives the stress: with MUSL it
+comes from the re-mapped velocities, so nodes of tiny mass at a free surface (where f / m is
+large while grad N is not small) cannot inject a huge affine velocity. APIC keeps angular
+momentum without FLIP's noise or PIC's dissipation, and has no blend to tune.
+
 `make_step(structure)` closes over the static structure and returns a pure
 `step(params, particles) -> particles`; every physical value comes from `params`.
 """
@@ -43,7 +51,8 @@ class Structure:
     """Everything static about a scene: changing any field compiles a new step.
 
     layout: the grid; boundaries: edge conditions; gravity (2,) [m/s^2]; dt [s];
-    flip: FLIP fraction of the velocity update (1 = FLIP, 0 = PIC); damping: local (Cundall)
+    transfer: "flip" | "apic"; flip: FLIP fraction of the velocity update (1 = FLIP, 0 = PIC),
+    used with transfer = "flip"; damping: local (Cundall)
     damping coefficient; update: "musl" | "usl"; bodies: the contiguous body blocks.
     """
 
@@ -51,17 +60,27 @@ class Structure:
     boundaries: object
     gravity: tuple[float, float]
     dt: float
+    transfer: str
     flip: float
     damping: float
     update: str
     bodies: tuple[BodyBlock, ...]
 
 
-def particles_to_grid(particles, stencil, layout, gravity):
+def point_momentum(particles, stencil, offsets):
+    """Momentum each point gives its stencil nodes, (N, s, s, 2): m_p N_I v_p, plus the APIC
+    affine part m_p N_I C_p (x_I - x_p) when `offsets` (x_I - x_p) are given."""
+    velocity = particles.v[:, None, None, :]
+    if offsets is not None:
+        velocity = velocity + jnp.einsum("nij,nabj->nabi", particles.affine, offsets)
+    return (particles.mass[:, None, None, None] * stencil.weights[..., None]) * velocity
+
+
+def particles_to_grid(particles, stencil, offsets, layout, gravity):
     """Node mass m_I, momentum p_I and force f_I = sum_p (m_p N_I g - V_p sigma_p . grad N_I)."""
     weights, gradients = stencil.weights, stencil.gradients
     mass = particles.mass[:, None, None] * weights
-    momentum = (particles.mass[:, None] * particles.v)[:, None, None, :] * weights[..., None]
+    momentum = point_momentum(particles, stencil, offsets)
     internal = -particles.volume[:, None, None, None] * jnp.einsum(
         "nij,nabj->nabi", particles.stress[:, :2, :2], gradients
     )
@@ -91,9 +110,15 @@ def update_grid_velocity(mass, momentum, force, dt, damping, mask, floor):
     return velocity_old, velocity_new
 
 
-def grid_to_particles(particles, stencil, velocity_old, velocity_new, flip, dt):
-    """v_p <- flip (v_p + sum N dv_I) + (1 - flip) sum N v_I; x_p <- x_p + dt sum N v_I."""
+def grid_to_particles(particles, stencil, velocity_old, velocity_new, transfer, flip, dt):
+    """Points take the new grid velocity and move: x_p <- x_p + dt sum N_I v_I.
+
+    FLIP/PIC: v_p <- flip (v_p + sum N_I dv_I) + (1 - flip) sum N_I v_I.
+    APIC: v_p <- sum N_I v_I (its C_p is set with the velocity gradient, in `make_step`).
+    """
     support = stencil.weights.shape[1]
+    if transfer == "apic":
+        flip = 0.0
     nodal = jnp.concatenate([velocity_new, velocity_new - velocity_old], axis=-1)
     at_points = jnp.einsum("nab,nabc->nc", stencil.weights, gather_from_nodes(stencil.base, nodal, support))
     grid_velocity, increment = at_points[:, :2], at_points[:, 2:]
@@ -103,7 +128,7 @@ def grid_to_particles(particles, stencil, velocity_old, velocity_new, flip, dt):
 
 def remap_velocity(particles, stencil, layout, mass, mask, floor):
     """MUSL: nodal velocity sum_p m_p v_p N_I / m_I from the updated point velocities."""
-    momentum = (particles.mass[:, None] * particles.v)[:, None, None, :] * stencil.weights[..., None]
+    momentum = point_momentum(particles, stencil, None)
     return safe_velocity(scatter_to_nodes(layout, stencil.base, momentum), mass, floor) * mask
 
 
@@ -143,20 +168,25 @@ def make_step(structure: Structure):
         mask = boundary_mask(layout, structure.boundaries, particles.x.dtype)
         floor = MASS_FLOOR * jnp.max(particles.mass)
         stencil = jax.named_call(layout.stencil, name="shape_functions")(particles.x)
+        offsets = None
+        if structure.transfer == "apic":
+            offsets = layout.node_offsets(stencil.base, particles.x, stencil.weights.shape[1])
         mass, momentum, force = jax.named_call(particles_to_grid, name="particles_to_grid")(
-            particles, stencil, layout, structure.gravity
+            particles, stencil, offsets, layout, structure.gravity
         )
         velocity_old, velocity_new = jax.named_call(update_grid_velocity, name="update_grid")(
             mass, momentum, force, dt, structure.damping, mask, floor
         )
         particles = jax.named_call(grid_to_particles, name="grid_to_particles")(
-            particles, stencil, velocity_old, velocity_new, structure.flip, dt
+            particles, stencil, velocity_old, velocity_new, structure.transfer, structure.flip, dt
         )
         if structure.update == "musl":
             velocity_new = jax.named_call(remap_velocity, name="remap_velocity")(
                 particles, stencil, layout, mass, mask, floor
             )
         gradient = velocity_gradient(stencil, velocity_new)
+        if structure.transfer == "apic":
+            particles = particles.replace(affine=gradient[:, :2, :2])
         particles = jax.named_call(update_stress, name="update_stress")(
             params, particles, gradient, structure.bodies, dt
         )

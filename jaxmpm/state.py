@@ -17,6 +17,7 @@ class Particles:
     Attributes:
       x: (N, 2) position [m].
       v: (N, 2) velocity [m/s].
+      affine: (N, 2, 2) APIC affine velocity C_p = sum_I v_I (x) grad N_I [1/s] (zero with FLIP).
       stress: (N, 3, 3) Cauchy stress, tension positive [Pa]; [2, 2] is sigma_zz.
       volume: (N,) current volume [m^3/m].
       mass: (N,) mass [kg/m].
@@ -28,6 +29,7 @@ class Particles:
 
     x: jax.Array
     v: jax.Array
+    affine: jax.Array
     stress: jax.Array
     volume: jax.Array
     mass: jax.Array

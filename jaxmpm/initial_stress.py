@@ -1,0 +1,31 @@
+"""Initial stress of bodies: the geostatic state.
+
+sigma_yy = rho g_y d (compression under gravity g_y < 0) at depth d below the body's top,
+sigma_xx = sigma_zz = K0 sigma_yy, no shear; K0 = 1 - sin(phi) (Jaky) or a given number.
+The depth of a point is measured in its own lattice column, from the top of the body's points
+in that column plus half a point spacing, so sloping surfaces are followed.
+"""
+
+import jax.numpy as jnp
+import numpy as np
+
+
+def depth_below_top(positions, spacing):
+    """(n,) depth [m] of each point below the top of its column of points (same x)."""
+    columns = np.round(positions[:, 0] / spacing).astype(np.int64)
+    _, inverse = np.unique(columns, return_inverse=True)
+    tops = np.full(inverse.max() + 1, -np.inf)
+    np.maximum.at(tops, inverse, positions[:, 1])
+    return tops[inverse] + 0.5 * spacing - positions[:, 1]
+
+
+def jaky_k0(friction_angle):
+    """K0 = 1 - sin(phi), phi in degrees (Jaky 1944)."""
+    return 1.0 - jnp.sin(jnp.deg2rad(friction_angle))
+
+
+def geostatic_stress(depth, density, vertical_gravity, k0):
+    """(n, 3, 3) stresses: sigma_yy = rho g_y d, sigma_xx = sigma_zz = K0 sigma_yy."""
+    vertical = density * vertical_gravity * depth
+    diagonal = jnp.stack([k0 * vertical, vertical, k0 * vertical], axis=-1)
+    return diagonal[:, :, None] * jnp.eye(3, dtype=diagonal.dtype)
