@@ -28,7 +28,7 @@ class Linear:
 
     def stencil(self, local, cells, cell):
         """local: (N, 2) positions in cell units from the grid origin; cells: (nx, ny)."""
-        upper = jnp.asarray(cells) - 1
+        upper = jnp.asarray(cells, jnp.int32) - 1
         base = jnp.clip(jnp.floor(local).astype(jnp.int32), 0, upper)
         fraction = local - base                                   # in [0, 1] inside the grid
         along = jnp.stack([1.0 - fraction, fraction], axis=1)    # (N, 2 nodes, 2 axes)
