@@ -41,7 +41,7 @@ class GridLayout:
     def node_offsets(self, base, positions, support):
         """x_I - x_p for each point's s x s stencil nodes: (N, s, s, 2) [m]."""
         offsets = jnp.arange(support, dtype=positions.dtype)
-        corner = jnp.asarray(self.origin, positions.dtype) + base * self.cell - positions
+        corner = jnp.asarray(self.origin, positions.dtype) + base.astype(positions.dtype) * self.cell - positions
         along_x = corner[:, None, 0] + offsets * self.cell
         along_y = corner[:, None, 1] + offsets * self.cell
         shape = (len(positions), support, support)
@@ -73,7 +73,7 @@ def scatter_to_nodes(layout, base, values):
 
 def gather_from_nodes(base, nodes, support):
     """Node values (nx + 1, ny + 1, C) at each point's s x s stencil: (N, s, s, C)."""
-    offsets = jnp.arange(support)
+    offsets = jnp.arange(support, dtype=base.dtype)
     return nodes[base[:, 0, None, None] + offsets[:, None], base[:, 1, None, None] + offsets[None, :]]
 
 

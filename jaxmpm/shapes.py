@@ -30,7 +30,7 @@ class Linear:
         """local: (N, 2) positions in cell units from the grid origin; cells: (nx, ny)."""
         upper = jnp.asarray(cells, jnp.int32) - 1
         base = jnp.clip(jnp.floor(local).astype(jnp.int32), 0, upper)
-        fraction = local - base                                   # in [0, 1] inside the grid
+        fraction = local - base.astype(local.dtype)               # in [0, 1] inside the grid
         along = jnp.stack([1.0 - fraction, fraction], axis=1)    # (N, 2 nodes, 2 axes)
         slope = jnp.stack([-jnp.ones_like(fraction), jnp.ones_like(fraction)], axis=1) / cell
         weights = along[:, :, None, 0] * along[:, None, :, 1]
