@@ -80,7 +80,10 @@ def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate,
     steps = BISECTION_STEPS[jnp.dtype(dtype).itemsize]
     zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
     (low, high), _ = jax.lax.scan(bisect, (zero, one), None, length=steps)
-    root = jax.lax.stop_gradient(0.5 * (low + high))
+    # Keep the root strictly inside (0, 1): when 1 - x is below round-off (gamma dt -> inf,
+    # phi -> 0) the midpoint would round to 1 and log1p(-1) = -inf would poison the gradient.
+    info = jnp.finfo(dtype)
+    root = jax.lax.stop_gradient(jnp.clip(0.5 * (low + high), info.tiny, 1.0 - info.epsneg))
     # Implicit function theorem: dx/dtheta = -(dR/dtheta) / (dR/dx) at the root.
     slope = jax.lax.stop_gradient(jax.grad(residual)(root))
     value = residual(root)
