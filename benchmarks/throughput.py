@@ -35,6 +35,16 @@ DOC = ROOT / "docs" / "benchmarks.md"
 BEGIN, END = "<!-- throughput:begin -->", "<!-- throughput:end -->"
 
 SIZES = {10_000: 100, 16_384: 128}     # points -> cells across the 1 m box (block is 0.5 m wide)
+# XLA:CPU (jaxlib 0.10) hands reductions to YNNPACK library fusions, which are slow for the
+# short reductions of this solver; one extra case measures the scene with them switched off.
+NO_YNN = "--xla_cpu_experimental_ynn_fusion_type="
+CASES = [  # (points, dtype, extra XLA_FLAGS)
+    (10_000, "float32", ""),
+    (10_000, "float64", ""),
+    (16_384, "float32", ""),
+    (16_384, "float64", ""),
+    (16_384, "float32", NO_YNN),
+]
 STEPS_PER_CALL = 100                   # steps per `sim._advance` call (one output interval)
 GRADIENT_STEPS = 200                   # steps of the rollout differentiated for the ratio
 
@@ -55,7 +65,7 @@ def block_scene(cells: int, dtype: str, steps: int):
         bodies=(Body("block", "block", Rectangle((0.25, 0.0), (0.75, 0.5))),),
         duration=dt * steps,
         dt=dt,
-        output_every=dt * STEPS_PER_CALL,
+        output_every=dt * min(steps, STEPS_PER_CALL),
         numerics=Numerics(shape="linear", ppc=2, flip=0.99, update="musl", dtype=dtype),
         probes=(
             Probe("top", "displacement", at=(0.5, 0.5)),
@@ -71,12 +81,16 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0   # KiB on Linux
 
 
+CPU_SECONDS = []   # process CPU time of each `timed` call (all threads), in call order
+
+
 def timed(function, *args):
-    """Wall seconds of one call, outputs ready."""
+    """Wall seconds of one call, outputs ready; its CPU seconds are appended to CPU_SECONDS."""
     import jax
 
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     jax.block_until_ready(function(*args))
+    CPU_SECONDS.append(time.process_time() - cpu)
     return time.perf_counter() - start
 
 
@@ -101,7 +115,9 @@ def run_case(points: int, dtype: str, repeats: int) -> dict:
     jax.block_until_ready(initial)
     result["rss_start_mb"] = peak_rss_mb()
     first = timed(sim._advance, params, initial, initial.x)
+    CPU_SECONDS.clear()
     times = [timed(sim._advance, params, initial, initial.x) for _ in range(repeats)]
+    cpu_best = min(CPU_SECONDS)
     final, _ = sim._advance(params, initial, initial.x)
     assert int(final.error_step) < 0, "the benchmark scene failed"
     best, median = min(times), statistics.median(times)
@@ -112,6 +128,7 @@ def run_case(points: int, dtype: str, repeats: int) -> dict:
         compile_forward_s=first - median,
         throughput_best=points * STEPS_PER_CALL / best,
         throughput_median=points * STEPS_PER_CALL / median,
+        throughput_per_cpu_second=points * STEPS_PER_CALL / cpu_best,
         rss_forward_mb=peak_rss_mb(),
     )
 
@@ -134,14 +151,14 @@ def run_case(points: int, dtype: str, repeats: int) -> dict:
     value = float(gradient(young))
     assert value == value and value != 0.0, f"gradient {value}"
     memory = gradient.lower(young).compile().memory_analysis()
-    loss_median, grad_median = statistics.median(loss_times), statistics.median(grad_times)
+    loss_best, grad_best = min(loss_times), min(grad_times)
     result.update(
-        loss_median_s=loss_median,
-        grad_median_s=grad_median,
-        compile_loss_s=loss_first - loss_median,
-        compile_grad_s=grad_first - grad_median,
-        grad_ratio=grad_median / loss_median,
-        grad_over_plain_forward=grad_median / (result["forward_median_s"] * GRADIENT_STEPS / STEPS_PER_CALL),
+        loss_best_s=loss_best,
+        grad_best_s=grad_best,
+        compile_loss_s=loss_first - statistics.median(loss_times),
+        compile_grad_s=grad_first - statistics.median(grad_times),
+        grad_ratio=grad_best / loss_best,
+        grad_over_plain_forward=grad_best / (best * GRADIENT_STEPS / STEPS_PER_CALL),
         grad_temp_mb=getattr(memory, "temp_size_in_bytes", 0) / 2**20 if memory else None,
         rss_grad_mb=peak_rss_mb(),
         gradient=value,
@@ -184,23 +201,28 @@ def machine_info() -> dict:
         "python": platform.python_version(),
         "jax": f"{jax.__version__} (jaxlib {jaxlib.__version__}, {jax.default_backend()})",
         "commit": commit or "unknown",
+        "load": os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan"),
     }
 
 
-def table(results: list[dict], machine: dict) -> str:
+def table(results: list[dict], machine: dict, load_before: float) -> str:
     lines = [
         f"Machine: {machine['cpu']}, {machine['cores']} cores, {machine['memory']}; "
         f"Python {machine['python']}, JAX {machine['jax']}; jaxmpm {machine['commit']}; "
-        f"{machine['date']}.",
+        f"{machine['date']}; 1-minute load average {load_before:.1f} before and "
+        f"{machine['load']:.1f} after the run (0 = idle machine).",
         "",
-        "| points | dtype | forward M particle-steps/s (best / median) | compile forward | "
-        "gradient / forward time | compile gradient | peak RSS forward / gradient | XLA temp, gradient |",
-        "|---:|---|---:|---:|---:|---:|---:|---:|",
+        "| points | dtype | forward M particle-steps/s, best / median | per CPU-second | "
+        "compile forward | gradient / forward time | compile gradient | "
+        "peak RSS forward / gradient | XLA temp, gradient |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in results:
+        label = r["dtype"] + (", YNNPACK fusion off" if NO_YNN in r.get("xla_flags", "") else "")
         lines.append(
-            f"| {r['points']:,} | {r['dtype']} | {r['throughput_best'] / 1e6:.2f} / "
-            f"{r['throughput_median'] / 1e6:.2f} | {r['compile_forward_s']:.2f} s | "
+            f"| {r['points']:,} | {label} | {r['throughput_best'] / 1e6:.2f} / "
+            f"{r['throughput_median'] / 1e6:.2f} | {r['throughput_per_cpu_second'] / 1e6:.2f} | "
+            f"{r['compile_forward_s']:.2f} s | "
             f"{r['grad_ratio']:.1f}x | {r['compile_grad_s']:.1f} s | "
             f"{r['rss_forward_mb']:.0f} / {r['rss_grad_mb']:.0f} MB | {r['grad_temp_mb']:.0f} MB |"
         )
@@ -209,21 +231,28 @@ def table(results: list[dict], machine: dict) -> str:
 
 METHOD = f"""\
 Method. Scene: a linear-elastic block (rho = 1000 kg/m^3, E = 1 MPa, nu = 0.3) resting on the
-fixed floor of a 1 m x 1 m box under gravity; linear shape functions, 2 x 2 points per cell, MUSL,
-FLIP 0.99, dt = 0.4 h / (40 m/s); 10,000 points on a 100^2 grid and 16,384 points on the 128^2
-grid of the comparison in PERFORMANCE.md. Forward throughput is points x {STEPS_PER_CALL} /
-wall time of one `Simulation._advance` call ({STEPS_PER_CALL} steps in a `lax.scan`, the
-loop `Simulation.run` drives), outputs ready (`block_until_ready`), after compilation, from the
-same initial state each time; best and median of the repeats. Compile time is the first call
-minus the median steady call. The gradient ratio is the median time of `jax.jit(jax.grad(loss))`
-over `jax.jit(loss)`, where loss(E) sums two probe histories of `Simulation.probes` over a
-{GRADIENT_STEPS}-step rollout (default checkpointing, segments of ceil(sqrt(steps)) steps).
-Each case runs in a fresh process: peak RSS is `getrusage` maxrss after the forward runs and
-after the gradient runs (it includes the ~0.3 GB of the Python and JAX runtime); XLA temp is
-the compiled gradient's `memory_analysis().temp_size_in_bytes`. float32 cases run without JAX's
-64-bit mode, float64 cases with it. Noise on this kind of shared 2-core VM is about +-10 %
-(more when other work runs): compare ratios within one run. Regenerate with
-`python benchmarks/throughput.py`."""
+fixed floor of a 1 m x 1 m box under gravity; linear shape functions, 2 x 2 points per cell,
+MUSL, FLIP 0.99, dt = 0.4 h / (40 m/s); 10,000 points on a 100^2 grid, and 16,384 points on the
+128^2 grid of the comparison in /work/shared/PERFORMANCE.md (whose peers ran Drucker-Prager sand
+with quadratic B-splines, so compare orders of magnitude, not digits). Forward throughput is
+points x {STEPS_PER_CALL} / wall time of one `Simulation._advance` call ({STEPS_PER_CALL} steps
+in a `lax.scan`, the loop `Simulation.run` drives), outputs ready (`block_until_ready`), after
+compilation, always from the same initial state; best and median of the repeats. "Per
+CPU-second" divides by the process CPU time of the best call instead (all threads): it moves
+less than wall time when other work shares the machine, and equals it when XLA ran on one core.
+Compile time is the first call minus the median steady call. The gradient ratio is the best
+time of `jax.jit(jax.grad(loss))` over the best of `jax.jit(loss)`, where loss(E) sums two probe
+histories of `Simulation.probes` over a {GRADIENT_STEPS}-step rollout (default checkpointing:
+segments of ceil(sqrt(steps)) steps, each step checkpointed; the gradient therefore runs the
+forward step three times and the backward step once). Each case runs in a fresh process:
+peak RSS is `getrusage` maxrss after the forward runs and after the gradient runs (including
+the ~0.3 GB of the Python and JAX runtime and of compilation); XLA temp is the compiled
+gradient's `memory_analysis().temp_size_in_bytes`. float32 cases run without JAX's 64-bit mode,
+float64 cases with it. The last row sets `XLA_FLAGS={NO_YNN}`, which stops XLA:CPU (jaxlib
+0.10) from sending reductions to YNNPACK library kernels, slow for this solver's short
+reductions. Timings on this shared 2-core VM move by +-10 % when it is idle and by up to 2x
+when other jobs run (see the load average): compare rows of one run, not runs. Regenerate
+with `python benchmarks/throughput.py` (about 2.5 minutes; `--quick` for the 10k rows)."""
 
 
 def write_doc(text: str):
@@ -257,18 +286,22 @@ def main():
         print(json.dumps(run_case(int(args.case[0]), args.case[1], repeats)))
         return
 
-    sizes = [10_000] if args.quick else list(SIZES)
+    cases = [case for case in CASES if case[0] == 10_000 and not case[2]] if args.quick else CASES
     results, start = [], time.perf_counter()
-    for points in sizes:
-        for dtype in ("float32", "float64"):
-            print(f"case {points:,} points {dtype} ...", file=sys.stderr, flush=True)
-            command = [sys.executable, __file__, "--case", str(points), dtype, "--repeats", str(repeats)]
-            done = subprocess.run(command, capture_output=True, text=True)
-            if done.returncode != 0:
-                sys.stderr.write(done.stderr)
-                raise SystemExit(f"case {points} {dtype} failed")
-            results.append(json.loads(done.stdout.strip().splitlines()[-1]))
-    text = table(results, machine_info())
+    load_before = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    for points, dtype, flags in cases:
+        print(f"case {points:,} points {dtype} {flags} ...", file=sys.stderr, flush=True)
+        command = [sys.executable, __file__, "--case", str(points), dtype, "--repeats", str(repeats)]
+        environment = dict(os.environ)
+        environment["XLA_FLAGS"] = " ".join(filter(None, [environment.get("XLA_FLAGS", ""), flags]))
+        done = subprocess.run(command, capture_output=True, text=True, env=environment)
+        if done.returncode != 0:
+            sys.stderr.write(done.stderr)
+            raise SystemExit(f"case {points} {dtype} {flags} failed")
+        result = json.loads(done.stdout.strip().splitlines()[-1])
+        result["xla_flags"] = flags
+        results.append(result)
+    text = table(results, machine_info(), load_before)
     print(text)
     print(f"\n(total {time.perf_counter() - start:.0f} s)", file=sys.stderr)
     if not args.no_write:

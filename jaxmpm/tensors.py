@@ -14,21 +14,28 @@ def safe_sqrt(x):
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
 
 
+def trace(tensor):
+    """t_00 + t_11 + t_22 of (..., 3, 3) tensors, written as two adds: jnp.trace is a masked
+    reduction, which XLA:CPU sends to a slow library (YNNPACK) kernel."""
+    return tensor[..., 0, 0] + tensor[..., 1, 1] + tensor[..., 2, 2]
+
+
 def pressure(stress):
     """Mean pressure p = -tr(sigma)/3, compression positive."""
-    return -jnp.trace(stress, axis1=-2, axis2=-1) / 3.0
+    return -trace(stress) / 3.0
 
 
 def deviator(tensor):
     """Deviatoric part t - tr(t)/3 I of a (..., 3, 3) tensor."""
-    mean = jnp.trace(tensor, axis1=-2, axis2=-1) / 3.0
+    mean = trace(tensor) / 3.0
     return tensor - mean[..., None, None] * jnp.eye(3, dtype=tensor.dtype)
 
 
 def von_mises(stress):
     """Equivalent deviatoric stress q = sqrt(3/2 s:s), finite gradient at s = 0."""
     s = deviator(stress)
-    return safe_sqrt(1.5 * jnp.sum(s * s, axis=(-2, -1)))
+    squares = sum(s[..., i, j] * s[..., i, j] for i in range(3) for j in range(3))   # not a reduce
+    return safe_sqrt(1.5 * squares)
 
 
 def symmetric(tensor):

@@ -21,7 +21,7 @@ def bulk_and_shear_moduli(young, poisson):
 def elastic_increment(params, rate_of_deformation, dt):
     """dt (K tr(d) I + 2 G dev(d)): the elastic stress increment for a strain-rate d [Pa]."""
     bulk, shear = bulk_and_shear_moduli(params["young"], params["poisson"])
-    volumetric = jnp.trace(rate_of_deformation)
+    volumetric = tensors.trace(rate_of_deformation)
     return dt * (
         bulk * volumetric * jnp.eye(3, dtype=rate_of_deformation.dtype)
         + 2.0 * shear * tensors.deviator(rate_of_deformation)
