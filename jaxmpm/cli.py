@@ -1,6 +1,7 @@
 """The `jaxmpm` command.
 
     jaxmpm run SCENE.toml [-o OUT.h5] [--set sand.friction_angle=32 ...] [--quiet]
+    jaxmpm calibrate CONFIG.toml [-o FIT.h5] [--resume] [--quiet]
 
 Exit status: 0 done; 1 the run stopped early (the output file keeps what was computed, marked
 complete = false); 2 user error (one line naming the key and value, never a traceback);
@@ -38,6 +39,11 @@ def build_parser():
     run.add_argument("--set", dest="assignments", action="append", default=[], metavar="KEY=VALUE",
                      help="override a scene value, e.g. sand.friction_angle=32 or grid.cell=0.01")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    calibrate = commands.add_parser("calibrate", help="fit scene parameters to observed probe histories")
+    calibrate.add_argument("config", help="calibration file (TOML; see inverse/config.py)")
+    calibrate.add_argument("-o", "--output", help="fit HDF5 file (default: CONFIG name with .h5)")
+    calibrate.add_argument("--resume", action="store_true", help="continue from OUTPUT.checkpoint.npz")
+    calibrate.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
 
@@ -51,9 +57,7 @@ def run_command(arguments):
     for assignment in arguments.assignments:
         key, value = parse_assignment(assignment)
         scene = scene.with_value(key, value)
-    output = Path(arguments.output or Path(arguments.scene).with_suffix(".h5").name)
-    if not output.parent.is_dir():
-        raise ValueError(f"-o {str(output)!r}: the folder {str(output.parent)!r} does not exist.")
+    output = output_path(arguments.output, arguments.scene)
     sim = jaxmpm.Simulation(scene)
     print(
         f"{scene.name}: {sim.point_count} points, {sim.steps} steps of {sim.dt:.4g} s, "
@@ -73,11 +77,48 @@ def run_command(arguments):
     return 0
 
 
+def output_path(argument, source):
+    output = Path(argument or Path(source).with_suffix(".h5").name)
+    if not output.parent.is_dir():
+        raise ValueError(f"-o {str(output)!r}: the folder {str(output.parent)!r} does not exist.")
+    return output
+
+
+def calibrate_command(arguments):
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jaxmpm
+    import inverse
+    from inverse.config import load_calibration
+
+    config = load_calibration(arguments.config)
+    output = output_path(arguments.output, arguments.config)
+    checkpoint = output.with_name(output.name + ".checkpoint.npz")
+    sim = jaxmpm.Simulation(config.scene)
+    options = dict(config.options)
+    name = options.pop("name")
+    try:
+        fit = inverse.calibrate(
+            sim, config.observations, config.fit, optimizer=name, checkpoint=checkpoint,
+            resume=arguments.resume, progress=not arguments.quiet, **options,
+        )
+    except KeyboardInterrupt:
+        print(f"jaxmpm: interrupted; resume with --resume (checkpoint {checkpoint})", file=sys.stderr)
+        return 130
+    fit.save(output)
+    print(fit.summary())
+    print(f"wrote {output}")
+    return 0
+
+
 def main(argv=None):
     arguments = build_parser().parse_args(argv)
     from jaxmpm.errors import SceneError
 
     try:
+        if arguments.command == "calibrate":
+            return calibrate_command(arguments)
         return run_command(arguments)
     except (SceneError, ValueError) as error:
         print(f"jaxmpm: error: {error}", file=sys.stderr)

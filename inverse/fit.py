@@ -1,0 +1,161 @@
+"""The result of a calibration: fitted values, their uncertainty, history, plots, HDF5 file.
+
+Uncertainty is the Gauss-Newton (linearised least-squares) covariance at the optimum,
+    C = s^2 (J^T J)^-1,  J = dr/dtheta  (residuals r weighted by 1 / sigma),
+with s^2 = 1 when every channel's noise sigma is given, and the residual variance
+s^2 = r.r / (M - P) otherwise. Standard errors are sqrt(diag C); correlations C_ij / (se_i se_j).
+A parameter the data do not identify shows as a large relative standard error or a
+correlation near +-1 with another parameter.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def gauss_newton(residuals, values, noise_known):
+    """(covariance (P, P), jacobian (M, P)) of the residual function at `values`."""
+    values = jnp.asarray(values)
+    jacobian = np.asarray(jax.jacfwd(residuals)(values))
+    r = np.asarray(residuals(values))
+    count, size = jacobian.shape
+    variance = 1.0 if noise_known else float(r @ r) / max(count - size, 1)
+    information = jacobian.T @ jacobian
+    covariance = variance * np.linalg.pinv(information, rcond=1e-12, hermitian=True)
+    return covariance, jacobian
+
+
+@dataclasses.dataclass
+class Fit:
+    """A calibration's outcome. `params` {path: value} are the best start's values."""
+
+    names: tuple
+    values: np.ndarray
+    loss: float
+    covariance: np.ndarray
+    jacobian: np.ndarray
+    start_values: np.ndarray
+    final_values: np.ndarray
+    final_losses: np.ndarray
+    best_start: int
+    reasons: list
+    history_loss: np.ndarray        # (iterations, starts)
+    history_values: np.ndarray      # (iterations, starts, P)
+    history_gradient: np.ndarray    # (iterations, starts)
+    iterations: int
+    evaluations: int
+    wall_time: float
+    optimizer: str
+    observations: object
+    time: np.ndarray
+    probes: dict
+    scene_toml: str
+
+    @property
+    def params(self) -> dict:
+        return {name: float(value) for name, value in zip(self.names, self.values)}
+
+    @property
+    def stderr(self) -> dict:
+        return {name: float(np.sqrt(max(self.covariance[i, i], 0.0))) for i, name in enumerate(self.names)}
+
+    @property
+    def correlation(self) -> np.ndarray:
+        """(P, P) correlation matrix, ordered as `names`."""
+        scale = np.sqrt(np.clip(np.diag(self.covariance), 1e-300, None))
+        return self.covariance / np.outer(scale, scale)
+
+    @property
+    def history(self) -> dict:
+        """Loss (I, S), parameter values (I, S, P) and gradient norm (I, S) per iteration."""
+        return {"loss": self.history_loss, "values": self.history_values, "gradient_norm": self.history_gradient}
+
+    def identifiability(self, relative=0.1, correlated=0.95) -> dict:
+        """{path: verdict}: "identified" if its relative standard error is below `relative` and
+        it is not correlated beyond `correlated` with another; otherwise why not."""
+        verdicts = {}
+        correlation = self.correlation
+        for i, name in enumerate(self.names):
+            error = self.stderr[name] / max(abs(self.values[i]), 1e-300)
+            partners = [self.names[j] for j in range(len(self.names)) if j != i and abs(correlation[i, j]) > correlated]
+            if error > relative:
+                verdicts[name] = f"poorly identified (relative standard error {error:.1%})"
+            elif partners:
+                verdicts[name] = f"correlated with {', '.join(partners)} (|rho| > {correlated})"
+            else:
+                verdicts[name] = f"identified (relative standard error {error:.2%})"
+        return verdicts
+
+    def summary(self) -> str:
+        lines = [f"{self.optimizer}: loss {self.loss:.6g} after {self.iterations} iterations, "
+                 f"{self.evaluations} simulations (forward + gradient), {self.wall_time:.1f} s"]
+        verdicts = self.identifiability()
+        for name in self.names:
+            lines.append(f"  {name} = {self.params[name]:.6g} +- {self.stderr[name]:.3g}   {verdicts[name]}")
+        lines.append(f"  stopped: {self.reasons[self.best_start]}")
+        return "\n".join(lines)
+
+    def plot(self, path=None):
+        """Data vs fit for every observed component, and the loss history. Returns the figure
+        (and writes it to `path` if given)."""
+        import matplotlib.pyplot as plt
+
+        channels = [(name, k, index) for name, channel in self.observations.channels.items()
+                    for index, k in enumerate(channel.components)]
+        figure, axes = plt.subplots(1, len(channels) + 1, figsize=(4 * (len(channels) + 1), 3.2))
+        for axis, (name, component, index) in zip(axes, channels):
+            channel = self.observations.channels[name]
+            axis.plot(channel.times, channel.values[:, index], ".", ms=3, color="0.4", label="observed")
+            axis.plot(self.time, self.probes[name][:, component], "-", color="C3", label="fit")
+            axis.set_title(f"{name}[{component}]")
+            axis.set_xlabel("t [s]")
+            axis.legend(fontsize=7)
+        history = axes[-1]
+        history.semilogy(self.history_loss, lw=1)
+        history.set_xlabel("iteration")
+        history.set_title("loss (each start)")
+        figure.tight_layout()
+        if path is not None:
+            figure.savefig(path, dpi=130)
+        return figure
+
+    def save(self, path) -> Path:
+        """HDF5, written atomically: attrs (optimizer, loss, iterations, evaluations, scene);
+        /params, /stderr (one dataset per parameter), /correlation, /covariance, /names,
+        /history/{loss, values, gradient_norm}, /starts/{initial, final, loss}, /probes/NAME."""
+        import h5py
+
+        path = Path(path)
+        temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+        try:
+            with h5py.File(temporary, "w") as file:
+                file.attrs.update(
+                    optimizer=self.optimizer, loss=self.loss, iterations=self.iterations,
+                    evaluations=self.evaluations, wall_time=self.wall_time, scene=self.scene_toml,
+                    best_start=self.best_start, stopped=self.reasons[self.best_start],
+                )
+                file.create_dataset("names", data=np.array(self.names, dtype="S"))
+                for group, values in (("params", self.params), ("stderr", self.stderr)):
+                    for name, value in values.items():
+                        file.create_dataset(f"{group}/{name}", data=value)
+                file.create_dataset("covariance", data=self.covariance)
+                file.create_dataset("correlation", data=self.correlation)
+                for name, values in self.history.items():
+                    file.create_dataset(f"history/{name}", data=values)
+                file.create_dataset("starts/initial", data=self.start_values)
+                file.create_dataset("starts/final", data=self.final_values)
+                file.create_dataset("starts/loss", data=self.final_losses)
+                file.create_dataset("time", data=self.time)
+                for name, values in self.probes.items():
+                    file.create_dataset(f"probes/{name}", data=values)
+            os.replace(temporary, path)
+        finally:
+            if temporary.exists():
+                temporary.unlink()
+        return path

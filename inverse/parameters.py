@@ -1,0 +1,151 @@
+"""The parameters being fitted, and the unconstrained coordinates the optimiser works in.
+
+A fitted parameter is named by its path in `sim.params`, e.g. "sand.friction_angle". Bounds
+decide the transform (SPEC section 5):
+  (low, high)   scaled logit:  x = low + (high - low) sigmoid(z)
+  (low, None)   log shift:     x = low + exp(z)          (e.g. (0, None) for a positive value)
+  (None, None)  identity:      x = z
+Everything not named stays at its value in the simulation's parameters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmpm.errors import SceneError
+
+
+@dataclasses.dataclass(frozen=True)
+class Bounded:
+    """One fitted parameter: its path, bounds (either may be None) and start value."""
+
+    path: str
+    low: float | None
+    high: float | None
+    start: float
+
+    def to_unconstrained(self, x):
+        if self.low is not None and self.high is not None:
+            fraction = (x - self.low) / (self.high - self.low)
+            return jnp.log(fraction) - jnp.log1p(-fraction)
+        if self.low is not None:
+            return jnp.log(x - self.low)
+        return x
+
+    def to_physical(self, z):
+        if self.low is not None and self.high is not None:
+            return self.low + (self.high - self.low) * jax.nn.sigmoid(z)
+        if self.low is not None:
+            return self.low + jnp.exp(z)
+        return z
+
+
+def flat_parameters(params, prefix=""):
+    """{"sand.friction_angle": value, ...} from a nested parameter dict."""
+    flat = {}
+    for key, value in params.items():
+        path = f"{prefix}{key}"
+        if isinstance(value, dict):
+            flat.update(flat_parameters(value, path + "."))
+        else:
+            flat[path] = value
+    return flat
+
+
+def _bounds(path, spec):
+    """(low, high, start) from (low, high) or {"low": .., "high": .., "start": ..}."""
+    start = None
+    if isinstance(spec, dict):
+        unknown = set(spec) - {"low", "high", "start"}
+        if unknown:
+            raise SceneError(f"fit.{path} has unknown key {sorted(unknown)[0]!r} (use low, high, start).")
+        low, high, start = spec.get("low"), spec.get("high"), spec.get("start")
+    elif isinstance(spec, (tuple, list)) and len(spec) == 2:
+        low, high = spec
+    else:
+        raise SceneError(f"fit.{path} = {spec!r} must be (low, high) or {{low, high, start}}.")
+    for name, value in (("low", low), ("high", high), ("start", start)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)):
+            raise SceneError(f"fit.{path}.{name} = {value!r} must be a finite number.")
+    if low is not None and high is not None and not low < high:
+        raise SceneError(f"fit.{path} = ({low}, {high}): the lower bound must be below the upper bound.")
+    return low, high, start
+
+
+class ParameterSpace:
+    """The fitted subset of a simulation's parameters, with transforms to unconstrained z."""
+
+    def __init__(self, params, fit: dict):
+        flat = flat_parameters(params)
+        if not fit:
+            raise SceneError("fit is empty: name at least one parameter, e.g. 'sand.friction_angle'.")
+        self.template = params
+        self.entries = []
+        for path, spec in fit.items():
+            if path not in flat:
+                hint = difflib.get_close_matches(path, list(flat), n=1)
+                suggestion = f" (did you mean {hint[0]!r}?)" if hint else f" (known: {', '.join(flat)})"
+                raise SceneError(f"fit names {path!r}, which is not a parameter of the scene{suggestion}.")
+            low, high, start = _bounds(path, spec)
+            start = float(flat[path]) if start is None else float(start)
+            inside = (low is None or start > low) and (high is None or start < high)
+            if not inside:
+                raise SceneError(
+                    f"fit.{path}: the initial value {start:g} is not strictly inside the bounds "
+                    f"({low}, {high})."
+                )
+            self.entries.append(Bounded(path, None if low is None else float(low), None if high is None else float(high), start))
+        self.names = tuple(entry.path for entry in self.entries)
+
+    @property
+    def size(self):
+        return len(self.entries)
+
+    def start_values(self):
+        return np.array([entry.start for entry in self.entries])
+
+    def to_unconstrained(self, values):
+        return jnp.stack([e.to_unconstrained(values[i]) for i, e in enumerate(self.entries)])
+
+    def to_physical(self, z):
+        return jnp.stack([e.to_physical(z[i]) for i, e in enumerate(self.entries)])
+
+    def insert(self, values, params=None):
+        """A copy of the parameter pytree with the fitted values replaced (differentiable)."""
+        params = self.template if params is None else params
+        result = jax.tree_util.tree_map(lambda leaf: leaf, params)   # fresh containers
+        for index, entry in enumerate(self.entries):
+            table = result
+            *parents, leaf = entry.path.split(".")
+            for key in parents:
+                table[key] = dict(table[key])
+                table = table[key]
+            table[leaf] = values[index]
+        return result
+
+    def random_values(self, count, seed):
+        """`count` start vectors drawn uniformly inside the bounds (log-uniform above a lower
+        bound alone: within a factor 10 of the start); the first is the configured start."""
+        rng = np.random.default_rng(seed)
+        draws = [self.start_values()]
+        for _ in range(count - 1):
+            row = []
+            for entry in self.entries:
+                if entry.low is not None and entry.high is not None:
+                    row.append(rng.uniform(entry.low, entry.high) * (1 - 1e-9) + 1e-9 * entry.low)
+                elif entry.low is not None:
+                    row.append(entry.low + (entry.start - entry.low) * 10.0 ** rng.uniform(-1.0, 1.0))
+                else:
+                    row.append(entry.start + rng.normal() * max(1.0, abs(entry.start)))
+            draws.append(np.array(row))
+        return np.stack(draws)
+
+    def fingerprint(self):
+        """What must match for a checkpoint to be resumed."""
+        return repr([(e.path, e.low, e.high) for e in self.entries])

@@ -1,0 +1,221 @@
+"""Calibration (SPEC section 5): loss gradients, twin recovery, uncertainty, resume, bad input.
+
+The twin is a coarse version of examples/calibrate_twin_scene.toml: a heavy footing dropped on
+viscoplastic sand (truth: friction_angle 25, fluidity 5, exponent 2). Its settlement stays
+below a cell, so the misfit is smooth in the parameters.
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import inverse
+import jaxmpm
+from inverse.calibrate import observation_data, residual_function
+from inverse.parameters import ParameterSpace
+from jaxmpm import SceneError
+
+TWIN = """
+[scene]
+name = "footing_twin"
+duration = 0.2
+output_every = 0.01
+snapshot_fields = ["x"]
+
+[grid]
+size = [0.4, 0.25]
+cell = 0.05
+boundaries = { left = "slip", right = "slip", bottom = "fixed", top = "free" }
+
+[numerics]
+transfer = "apic"
+ppc = 2
+
+[materials.sand]
+model = "drucker_prager"
+density = 1800.0
+young = 2.0e6
+poisson = 0.3
+friction_angle = 25.0
+cone = "plane_strain"
+fluidity = 5.0
+exponent = 2.0
+
+[materials.block]
+model = "linear_elastic"
+density = 20000.0
+young = 5.0e7
+poisson = 0.2
+
+[[bodies]]
+name = "layer"
+material = "sand"
+region = { rectangle = [[0.0, 0.0], [0.4, 0.15]] }
+initial_stress = { geostatic = { k0 = "jaky" } }
+
+[[bodies]]
+name = "footing"
+material = "block"
+region = { rectangle = [[0.15, 0.15], [0.25, 0.2]] }
+velocity = [0.0, -0.1]
+
+[[probes]]
+name = "footing"
+kind = "body_displacement"
+body = "footing"
+
+[[probes]]
+name = "surface"
+kind = "displacement"
+at = [0.3, 0.15]
+"""
+TRUTH = {"sand.friction_angle": 25.0, "sand.fluidity": 5.0, "sand.exponent": 2.0}
+FIT = {"sand.friction_angle": (15.0, 40.0), "sand.fluidity": (0.1, 100.0), "sand.exponent": (1.0, 5.0)}
+# at least 20 % away from the truth in every parameter
+WRONG = {"sand.friction_angle": 30.0, "sand.fluidity": 3.5, "sand.exponent": 2.5}
+
+
+@functools.lru_cache
+def twin_simulation():
+    return jaxmpm.Simulation(jaxmpm.Scene.from_toml(TWIN))
+
+
+def twin_observations(noise=0.0, seed=0):
+    """Footing settlement and a surface point every 0.01 s, plus N(0, noise^2) [m]."""
+    sim = twin_simulation()
+    probes = sim.probes()
+    stride = int(round(0.01 / sim.dt))
+    rng = np.random.default_rng(seed)
+    data = {}
+    for name, components in (("footing", [1]), ("surface", [0, 1])):
+        values = np.asarray(probes[name])[::stride][:, components]
+        data[name] = (sim.time[::stride], values + noise * rng.standard_normal(values.shape), components)
+    sigma = {"footing": noise, "surface": noise} if noise > 0 else None
+    return inverse.Observations.from_arrays(data, sigma=sigma)
+
+
+def test_loss_gradient_matches_central_differences():
+    # VALIDATION.md section 8: central differences, relative step 1e-6, float64.
+    sim = twin_simulation()
+    observations = twin_observations(noise=1e-5)
+    space = ParameterSpace(sim.params, FIT)
+    residuals = residual_function(sim, observations, space)
+    data = observation_data(sim, observations)
+
+    def loss(values):
+        r = residuals(values, data)
+        return 0.5 * jnp.sum(r * r)
+
+    point = jnp.array([WRONG[name] for name in FIT])
+    gradient = np.asarray(jax.grad(loss)(point))
+    for index in range(len(FIT)):
+        step = 1e-6 * float(point[index])
+        up, down = point.at[index].add(step), point.at[index].add(-step)
+        reference = (float(loss(up)) - float(loss(down))) / (2.0 * step)
+        assert abs(reference) > 0.0
+        np.testing.assert_allclose(gradient[index], reference, rtol=1e-5)
+
+
+def test_twin_recovers_the_truth_from_noise_free_data():
+    fit = inverse.calibrate(twin_simulation(), twin_observations(), FIT, starts=[WRONG],
+                            max_iterations=60, progress=False)
+    assert abs(fit.params["sand.friction_angle"] - 25.0) < 0.5
+    assert fit.params["sand.fluidity"] == pytest.approx(5.0, rel=0.10)
+    assert fit.params["sand.exponent"] == pytest.approx(2.0, rel=0.10)
+    assert fit.loss < 1e-3 * fit.history["loss"][0, 0]
+    assert fit.evaluations >= fit.iterations
+
+
+def test_standard_errors_shrink_with_noise_and_bracket_the_truth():
+    # Gauss-Newton: C = (J^T J)^-1 with residuals weighted by 1/sigma, so standard errors scale
+    # with the noise; at a realistic noise the truth lies within 3 standard errors.
+    sim = twin_simulation()
+    truth_start = [dict(TRUTH)]
+    errors = {}
+    for noise in (4e-5, 1e-5):
+        fit = inverse.calibrate(sim, twin_observations(noise, seed=1), FIT, starts=truth_start,
+                                max_iterations=15, progress=False)
+        errors[noise] = fit.stderr
+        for name, value in TRUTH.items():
+            assert abs(fit.params[name] - value) < 3.0 * fit.stderr[name], (noise, name, fit.params, fit.stderr)
+    for name in TRUTH:
+        assert errors[1e-5][name] < 0.5 * errors[4e-5][name]
+
+
+def test_interrupted_calibration_resumes_where_it_would_have_ended(tmp_path):
+    sim = twin_simulation()
+    observations = twin_observations()
+    options = dict(starts=[WRONG], max_iterations=6, progress=False, checkpoint_every=2)
+    whole = inverse.calibrate(sim, observations, FIT, **options)
+
+    def stop_after_three(iteration, progress):
+        if iteration == 3:
+            raise KeyboardInterrupt
+
+    checkpoint = tmp_path / "fit.checkpoint.npz"
+    with pytest.raises(KeyboardInterrupt):
+        inverse.calibrate(sim, observations, FIT, checkpoint=checkpoint, callback=stop_after_three, **options)
+    assert checkpoint.exists()
+    resumed = inverse.calibrate(sim, observations, FIT, checkpoint=checkpoint, resume=True, **options)
+    assert resumed.iterations == whole.iterations
+    np.testing.assert_allclose(resumed.values, whole.values, rtol=1e-12)
+    np.testing.assert_allclose(resumed.history["loss"], whole.history["loss"], rtol=1e-12)
+
+
+def test_observation_files_round_trip(tmp_path):
+    observations = twin_observations(noise=1e-5)
+    observations.to_csv(tmp_path / "obs.csv")
+    again = inverse.load_observations(tmp_path / "obs.csv")
+    for name, channel in observations.channels.items():
+        np.testing.assert_array_equal(again.channels[name].values, channel.values)
+        assert again.channels[name].components == channel.components
+    # a jaxmpm output file is an observation file too
+    result = jaxmpm.simulate(jaxmpm.Scene.from_toml(TWIN), progress=False)
+    loaded = inverse.load_observations(result.save(tmp_path / "run.h5"))
+    np.testing.assert_array_equal(loaded.channels["footing"].values, result.probes["footing"])
+
+
+def test_bad_calibration_input_is_a_clear_error():
+    sim = twin_simulation()
+    observations = twin_observations()
+    with pytest.raises(SceneError, match=r"'sand.friction_angl'.*did you mean 'sand.friction_angle'"):
+        inverse.calibrate(sim, observations, {"sand.friction_angl": (20, 40)}, progress=False)
+    with pytest.raises(SceneError, match=r"sand.fluidity: the initial value 5 is not strictly inside"):
+        inverse.calibrate(sim, observations, {"sand.fluidity": (10, 100)}, progress=False)
+    times = np.array([0.0, 0.1, 0.2])
+    with pytest.raises(SceneError, match=r"observations.footing.values has a non-finite value"):
+        inverse.Observations.from_arrays({"footing": (times, [0.0, np.nan, 0.0], [1])})
+    late = inverse.Observations.from_arrays({"footing": (np.array([0.0, 0.1, 0.5]), [0.0, 0.0, 0.0], [1])})
+    with pytest.raises(SceneError, match=r"observations.footing.times has t = 0.5 s outside the simulated span"):
+        inverse.calibrate(sim, late, FIT, progress=False)
+    unknown = inverse.Observations.from_arrays({"wall": (times, [0.0, 0.0, 0.0])})
+    with pytest.raises(SceneError, match=r"observations.wall is not a probe of the scene"):
+        inverse.calibrate(sim, unknown, FIT, progress=False)
+
+
+def test_calibrate_command(tmp_path, capsys):
+    from jaxmpm.cli import main
+
+    (tmp_path / "scene.toml").write_text(TWIN)
+    twin_observations(noise=1e-5).to_csv(tmp_path / "obs.csv")
+    config = tmp_path / "calibration.toml"
+    config.write_text(
+        'scene = "scene.toml"\nobservations = "obs.csv"\n'
+        '[fit]\n"sand.friction_angle" = [15.0, 40.0]\n'
+        "[noise]\nfooting = 1e-5\nsurface = 1e-5\n"
+        "[optimizer]\nmax_iterations = 8\n"
+    )
+    output = tmp_path / "fit.h5"
+    assert main(["calibrate", str(config), "-o", str(output), "--quiet"]) == 0
+    assert "sand.friction_angle" in capsys.readouterr().out
+    import h5py
+
+    with h5py.File(output) as file:
+        assert abs(file["params/sand.friction_angle"][()] - 25.0) < 0.5
+        assert file["correlation"].shape == (1, 1)
+    config.write_text(config.read_text().replace("max_iterations", "max_iteration"))
+    assert main(["calibrate", str(config), "-o", str(output), "--quiet"]) == 2
+    assert "optimizer.max_iteration" in capsys.readouterr().err
