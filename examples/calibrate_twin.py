@@ -8,7 +8,7 @@
 3. calibrate friction angle, fluidity and exponent starting 20 % or more away;
 4. print recovered values, standard errors, errors against the truth, iterations, cost.
 With --write-observations PATH it only writes the noisy observations (the file that
-`jaxmpm calibrate examples/calibrate_twin.toml` reads) and stops.
+`jaxmpm calibrate examples/calibrate_twin.calibration.toml` reads) and stops.
 """
 
 import argparse

@@ -11,9 +11,12 @@ complete = false); 2 user error (one line naming the key and value, never a trac
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tomllib
 from pathlib import Path
+
+from jaxmpm.errors import SceneError
 
 USER_ERROR = 2
 
@@ -22,7 +25,7 @@ def parse_assignment(text):
     """'key=value' -> (key, value), the value read as a TOML value (a bare word is a string)."""
     key, separator, raw = text.partition("=")
     if not separator or not key.strip():
-        raise ValueError(f"--set {text!r} must look like key=value (e.g. sand.friction_angle=32).")
+        raise SceneError(f"--set {text!r} must look like key=value (e.g. sand.friction_angle=32).")
     try:
         value = tomllib.loads(f"value = {raw.strip()}")["value"]
     except tomllib.TOMLDecodeError:
@@ -80,7 +83,9 @@ def run_command(arguments):
 def output_path(argument, source):
     output = Path(argument or Path(source).with_suffix(".h5").name)
     if not output.parent.is_dir():
-        raise ValueError(f"-o {str(output)!r}: the folder {str(output.parent)!r} does not exist.")
+        raise SceneError(f"-o {str(output)!r}: the folder {str(output.parent)!r} does not exist.")
+    if not os.access(output.parent, os.W_OK):
+        raise SceneError(f"-o {str(output)!r}: the folder {str(output.parent)!r} is not writable.")
     return output
 
 
@@ -114,14 +119,15 @@ def calibrate_command(arguments):
 
 def main(argv=None):
     arguments = build_parser().parse_args(argv)
-    from jaxmpm.errors import SceneError
-
     try:
         if arguments.command == "calibrate":
             return calibrate_command(arguments)
         return run_command(arguments)
-    except (SceneError, ValueError) as error:
+    except SceneError as error:
         print(f"jaxmpm: error: {error}", file=sys.stderr)
+        return USER_ERROR
+    except OSError as error:
+        print(f"jaxmpm: error: {error.strerror}: {error.filename}", file=sys.stderr)
         return USER_ERROR
 
 

@@ -10,9 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def depth_below_top(positions, spacing):
-    """(n,) depth [m] of each point below the top of its column of points (same x)."""
-    columns = np.round(positions[:, 0] / spacing).astype(np.int64)
+def depth_below_top(positions, spacing, origin_x):
+    """(n,) depth [m] of each point below the top of its column of points (same x).
+    Points sit at sub-cell centres origin + (i + 1/2) spacing, so floor gives the column i."""
+    columns = np.floor((positions[:, 0] - origin_x) / spacing).astype(np.int64)
     _, inverse = np.unique(columns, return_inverse=True)
     tops = np.full(inverse.max() + 1, -np.inf)
     np.maximum.at(tops, inverse, positions[:, 1])

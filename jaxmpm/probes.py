@@ -1,4 +1,4 @@
-"""Probes: quantities recorded at every step, as functions of the state.
+"""Probes: quantities recorded at every step, as functions of the state (SPEC section 8).
 
 `make_probes(scene, seeds)` resolves each probe's target once, at setup (the nearest point,
 the body's slice), and returns observe(particles, initial_x) -> {name: (k,) array}.
@@ -21,6 +21,8 @@ def make_probes(scene, seeds):
             readers[probe.name] = _point_displacement(nearest_point(seeds, probe.at))
         elif probe.kind == "body_displacement":
             readers[probe.name] = _body_displacement(*body_slices[probe.body])
+        elif probe.kind == "body_rotation":
+            readers[probe.name] = _body_rotation(*body_slices[probe.body])
         else:
             raise AssertionError(probe.kind)
 
@@ -43,5 +45,23 @@ def _body_displacement(start, stop):
         moved = particles.x[start:stop] - initial_x[start:stop]
         # A dot, not jnp.sum(mass[:, None] * moved, axis=0): XLA:CPU runs that reduction slowly.
         return jnp.dot(mass, moved) / jnp.sum(mass)
+
+    return read
+
+
+def _body_rotation(start, stop):
+    """Angle of the rotation that best maps the body's initial shape onto its current one
+    (least squares, mass-weighted, about the centres of mass): atan2(sum m r0 x r, sum m r0 . r),
+    counter-clockwise positive [rad], in (-pi, pi]."""
+
+    def read(particles, initial_x):
+        mass = particles.mass[start:stop]
+        weights = mass / jnp.sum(mass)
+        now = particles.x[start:stop] - jnp.dot(weights, particles.x[start:stop])
+        before = initial_x[start:stop] - jnp.dot(weights, initial_x[start:stop])
+        cross = jnp.dot(mass, before[:, 0] * now[:, 1] - before[:, 1] * now[:, 0])
+        dot = jnp.dot(mass, before[:, 0] * now[:, 0] + before[:, 1] * now[:, 1])
+        degenerate = (cross == 0.0) & (dot == 0.0)          # a one-point body: no rotation
+        return jnp.arctan2(cross, jnp.where(degenerate, 1.0, dot))[None]
 
     return read

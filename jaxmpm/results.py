@@ -10,11 +10,12 @@ never sees half a file.
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 
 import h5py
 import numpy as np
+
+from jaxmpm.files import atomic_path
 
 
 @dataclasses.dataclass
@@ -56,29 +57,23 @@ class Result:
         from jaxmpm import __version__
 
         path = Path(path)
-        temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        try:
-            with h5py.File(temporary, "w") as file:
-                file.attrs["jaxmpm_version"] = __version__
-                file.attrs["scene"] = self.scene_toml
-                file.attrs["complete"] = bool(self.complete)
-                file.attrs["message"] = self.message
-                file.create_dataset("time", data=self.time)
-                probes = file.create_group("probes")
-                for name, values in self.probes.items():
-                    probes.create_dataset(name, data=values)
-                snapshots = file.create_group("snapshots")
-                snapshots.create_dataset("time", data=self.snapshots["time"])
-                for body, fields in self.snapshots.items():
-                    if body == "time":
-                        continue
-                    group = snapshots.create_group(body)
-                    for field, values in fields.items():
-                        group.create_dataset(field, data=values, compression="gzip", compression_opts=4)
-            os.replace(temporary, path)
-        finally:
-            if temporary.exists():
-                temporary.unlink()
+        with atomic_path(path) as temporary, h5py.File(temporary, "w") as file:
+            file.attrs["jaxmpm_version"] = __version__
+            file.attrs["scene"] = self.scene_toml
+            file.attrs["complete"] = bool(self.complete)
+            file.attrs["message"] = self.message
+            file.create_dataset("time", data=self.time)
+            probes = file.create_group("probes")
+            for name, values in self.probes.items():
+                probes.create_dataset(name, data=values)
+            snapshots = file.create_group("snapshots")
+            snapshots.create_dataset("time", data=self.snapshots["time"])
+            for body, fields in self.snapshots.items():
+                if body == "time":
+                    continue
+                group = snapshots.create_group(body)
+                for field, values in fields.items():
+                    group.create_dataset(field, data=values, compression="gzip", compression_opts=4)
         return path
 
     @classmethod

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import re
 import tomllib
 from typing import Any
 
@@ -23,11 +24,13 @@ from jaxmpm.materials.base import check_range, material_parameters, number_field
 REQUIRED = object()
 BOUNDARY_KINDS = ("fixed", "slip", "free")
 SNAPSHOT_FIELDS = ("x", "v", "displacement", "stress", "plastic_strain", "volume", "mass")
-PROBE_KINDS = ("displacement", "body_displacement")
+PROBE_KINDS = ("displacement", "body_displacement", "body_rotation")
+NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")   # bodies, materials, probes: safe in HDF5 paths and --set
 # Keys the SPEC names whose physics is not built yet: rejected with a clear message, not ignored.
 NOT_YET = {
     "geometry": ("axisymmetric",),
     "shape": ("gimp", "bspline2"),
+    "kind": ("contact_force", "reaction"),
 }
 
 
@@ -120,7 +123,9 @@ class Body:
 @dataclasses.dataclass(frozen=True)
 class Probe:
     """A recorded history. `displacement`: of the point nearest `at` at t = 0 (k = 2);
-    `body_displacement`: mass-weighted mean displacement of `body` (k = 2)."""
+    `body_displacement`: mass-weighted mean displacement of `body` (k = 2);
+    `body_rotation`: rotation of `body` about its centre of mass, counter-clockwise positive
+    [rad] (k = 1)."""
 
     name: str
     kind: str
@@ -186,9 +191,11 @@ class Scene:
             if isinstance(part, int):
                 table = table[part]
                 continue
-            if not isinstance(table, dict) or part not in table:
-                raise SceneError(f"--set {key}: the scene has no section {part!r}.")
+            if not isinstance(table, dict) or not isinstance(table.get(part), (dict, list)):
+                raise SceneError(f"--set {key}: the scene has no section {part!r} there.")
             table = table[part]
+        if not isinstance(table, dict):
+            raise SceneError(f"--set {key}: {parts[-1]!r} is not a key of a table.")
         table[parts[-1]] = value
         return scene_from_dict(data)
 
@@ -368,7 +375,7 @@ def _read_probe(table: _Table):
     name = table.get("name", "str")
     kind = table.get("kind", "str", choices=PROBE_KINDS)
     at = table.get("at", "vec2") if kind == "displacement" else None
-    body = table.get("body", "str") if kind == "body_displacement" else None
+    body = table.get("body", "str") if kind in ("body_displacement", "body_rotation") else None
     table.finish()
     return Probe(name, kind, at, body)
 
@@ -559,10 +566,19 @@ def check_scene(scene: Scene):
     numerics = scene.numerics
     check_range("numerics.flip", numerics.flip, low=0.0, high=1.0, low_inclusive=True, high_inclusive=True)
     check_range("numerics.ppc", numerics.ppc, low=1, high=8, low_inclusive=True, high_inclusive=True)
-    check_range("numerics.damping", numerics.damping, low=0.0, high=1.0, low_inclusive=True)
+    check_range("numerics.damping", numerics.damping, low=0.0, high=1.0, low_inclusive=True, high_inclusive=True)
 
     if not scene.materials:
         raise SceneError("materials is empty: define at least one [materials.NAME] table.")
+    named = [(f"materials.{name}", name) for name in scene.materials]
+    named += [(f"bodies[{i}].name", body.name) for i, body in enumerate(scene.bodies)]
+    named += [(f"probes[{i}].name", probe.name) for i, probe in enumerate(scene.probes)]
+    for key, name in named:
+        if not isinstance(name, str) or not NAME.match(name) or name == "time":
+            raise SceneError(
+                f"{key} = {name!r} must be a name of letters, digits, '_' or '-' starting with a "
+                "letter or '_', other than 'time'."
+            )
     for name, material in scene.materials.items():
         material.check(f"materials.{name}")
 
@@ -607,7 +623,7 @@ def check_scene(scene: Scene):
         where = f"probes[{index}]"
         if [p.name for p in scene.probes].count(probe.name) > 1:
             raise SceneError(f"{where}.name = {probe.name!r} is used by more than one probe.")
-        if probe.kind == "body_displacement" and probe.body not in names:
+        if probe.kind in ("body_displacement", "body_rotation") and probe.body not in names:
             raise SceneError(f"{where}.body = {probe.body!r} is not the name of a body.")
         if probe.kind == "displacement" and not _inside_grid(grid, probe.at):
             raise SceneError(f"{where}.at = {list(probe.at)} is outside the grid.")

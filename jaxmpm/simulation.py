@@ -137,6 +137,7 @@ class Simulation:
             flags=jnp.zeros((count,), jnp.int32),
             step=jnp.zeros((), jnp.int32),
             error_step=jnp.full((), -1, jnp.int32),
+            error_point=jnp.full((), -1, jnp.int32),
         )
 
     def body_initial_stress(self, body, block, material):
@@ -147,7 +148,7 @@ class Simulation:
         k0 = body.initial_stress.k0
         k0 = jaky_k0(material["friction_angle"]) if k0 == "jaky" else k0
         spacing = self.scene.grid.cell / self.scene.numerics.ppc
-        depth = depth_below_top(self.seeds.positions[block.start : block.stop], spacing)
+        depth = depth_below_top(self.seeds.positions[block.start : block.stop], spacing, self.scene.grid.origin[0])
         return geostatic_stress(jnp.asarray(depth, self.dtype), material["density"], self.scene.gravity[1], k0)
 
     # ------------------------------------------------------------------ differentiable
@@ -192,6 +193,9 @@ class Simulation:
 
         params = self.cast(self.params if params is None else params)
         particles = self.initial_state(params) if initial is None else initial
+        particles = particles.replace(
+            step=jnp.zeros((), jnp.int32), error_step=jnp.full((), -1, jnp.int32), error_point=jnp.full((), -1, jnp.int32)
+        )
         initial_x = particles.x
         fields = self.scene.snapshot_fields
         probes = {name: [np.asarray(value)[None]] for name, value in self.observe(particles, initial_x).items()}
@@ -240,7 +244,7 @@ class Simulation:
 def describe_failure(sim: Simulation, particles: Particles) -> str:
     """One sentence: which step, body and point went wrong, and how."""
     flags = np.asarray(particles.flags)
-    index = int(np.flatnonzero(flags)[0])
+    index = int(particles.error_point)
     block = next(b for b in sim.structure.bodies if b.start <= index < b.stop)
     what = "left the grid" if flags[index] & state_bits.LEFT_GRID else "became non-finite"
     step = int(particles.error_step)

@@ -25,6 +25,7 @@ class Particles:
       flags: (N,) int32 error bits (LEFT_GRID, NON_FINITE); errors inside jit are data.
       step: () int32 steps taken.
       error_step: () int32 first step at which any flag was raised, -1 if none.
+      error_point: () int32 a point flagged at that first step (the lowest index), -1 if none.
     """
 
     x: jax.Array
@@ -37,6 +38,7 @@ class Particles:
     flags: jax.Array
     step: jax.Array
     error_step: jax.Array
+    error_point: jax.Array
 
     def replace(self, **changes):
         return dataclasses.replace(self, **changes)
@@ -53,5 +55,8 @@ def record_errors(particles, outside):
     step = particles.step + 1
     first = (particles.error_step < 0) & jnp.any(flags != 0)
     return particles.replace(
-        flags=flags, step=step, error_step=jnp.where(first, step, particles.error_step)
+        flags=flags,
+        step=step,
+        error_step=jnp.where(first, step, particles.error_step),
+        error_point=jnp.where(first, jnp.argmax(flags != 0).astype(jnp.int32), particles.error_point),
     )

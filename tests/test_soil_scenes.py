@@ -96,3 +96,39 @@ def test_coarse_column_collapse_matches_published_deposit():
     assert aspect == pytest.approx(0.5)
     assert height == pytest.approx(height0, abs=2 * half)
     assert 1.2 * aspect <= runout <= 1.8 * aspect, runout
+
+
+def test_geostatic_depth_follows_a_sloping_surface():
+    # A 1:1 slope: surface y_s(x) = 0.31 - x (offset so no point centre lies on it). Each point's depth is measured from the top of
+    # its own column of points plus half a spacing, so it equals y_s(x_p) - y_p to within half a
+    # point spacing (the column's top point lies within one spacing below the surface).
+    text = LAYER.replace(
+        'region = { rectangle = [[0.0, 0.0], [1.0, 0.5]] }',
+        'region = { polygon = [[0.0, 0.0], [0.31, 0.0], [0.0, 0.31]] }\n'
+        'initial_stress = { geostatic = { k0 = 0.5 } }',
+    )
+    sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(text).with_value("numerics.ppc", 2))
+    state = sim.initial_state()
+    x, y = np.asarray(state.x).T
+    depth = np.asarray(state.stress[:, 1, 1]) / (-1800.0 * 9.81)
+    spacing = 0.05 / 2
+    np.testing.assert_array_less(np.abs(depth - ((0.31 - x) - y)), 0.5 * spacing + 1e-12)
+
+
+def test_body_rotation_probe_measures_a_rigid_turn():
+    # The probe is the angle of the least-squares rotation between the initial and current
+    # shapes; for points turned rigidly by theta about any centre it is theta exactly.
+    text = LAYER + """
+[[probes]]
+name = "turn"
+kind = "body_rotation"
+body = "layer"
+"""
+    sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(text))
+    state = sim.initial_state()
+    for theta in (0.3, -1.2, 2.5):
+        rotation = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+        moved = (np.asarray(state.x) - [0.2, 0.1]) @ rotation.T + [1.0, -3.0]
+        value = sim.observe(state.replace(x=np.asarray(moved)), state.x)["turn"]
+        assert value.shape == (1,)
+        np.testing.assert_allclose(float(value[0]), theta, atol=1e-12)
