@@ -11,23 +11,37 @@ correlation near +-1 with another parameter.
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxmpm.files import atomic_path
+
 
 def gauss_newton(residuals, values, noise_known):
-    """(covariance (P, P), jacobian (M, P)) of the residual function at `values`."""
+    """(covariance (P, P), jacobian (M, P)) of the residual function at `values`.
+
+    The Jacobian's columns are scaled by |theta| (so E ~ 1e7 and phi ~ 30 are comparable) and
+    decomposed by SVD. A direction whose singular value is below sqrt(eps) of the largest is not
+    constrained by the data: every parameter taking part in it gets an infinite variance (and
+    NaN correlations), rather than the zero a pseudo-inverse would report.
+    """
     values = jnp.asarray(values)
     jacobian = np.asarray(jax.jacfwd(residuals)(values))
     r = np.asarray(residuals(values))
     count, size = jacobian.shape
     variance = 1.0 if noise_known else float(r @ r) / max(count - size, 1)
-    information = jacobian.T @ jacobian
-    covariance = variance * np.linalg.pinv(information, rcond=1e-12, hermitian=True)
+    scale = np.where(np.abs(np.asarray(values)) > 0, np.abs(np.asarray(values)), 1.0)
+    _, singular, directions = np.linalg.svd(jacobian * scale, full_matrices=False)
+    constrained = singular > np.sqrt(np.finfo(float).eps) * max(singular.max(initial=0.0), 1e-300)
+    inverse_squares = np.where(constrained, 1.0 / np.where(constrained, singular, 1.0) ** 2, 0.0)
+    covariance = variance * (directions.T * inverse_squares) @ directions * np.outer(scale, scale)
+    free = np.any(np.abs(directions[~constrained]) > 1e-8, axis=0) if (~constrained).any() else np.zeros(size, bool)
+    covariance[free, :] = np.nan
+    covariance[:, free] = np.nan
+    covariance[free, free] = np.inf
     return covariance, jacobian
 
 
@@ -56,6 +70,7 @@ class Fit:
     time: np.ndarray
     probes: dict
     scene_toml: str
+    warning: str = ""
 
     @property
     def params(self) -> dict:
@@ -84,7 +99,9 @@ class Fit:
         for i, name in enumerate(self.names):
             error = self.stderr[name] / max(abs(self.values[i]), 1e-300)
             partners = [self.names[j] for j in range(len(self.names)) if j != i and abs(correlation[i, j]) > correlated]
-            if error > relative:
+            if not np.isfinite(error):
+                verdicts[name] = "not identified: the data do not constrain it"
+            elif error > relative:
                 verdicts[name] = f"poorly identified (relative standard error {error:.1%})"
             elif partners:
                 verdicts[name] = f"correlated with {', '.join(partners)} (|rho| > {correlated})"
@@ -99,6 +116,8 @@ class Fit:
         for name in self.names:
             lines.append(f"  {name} = {self.params[name]:.6g} +- {self.stderr[name]:.3g}   {verdicts[name]}")
         lines.append(f"  stopped: {self.reasons[self.best_start]}")
+        if self.warning:
+            lines.append(f"  warning: {self.warning}")
         return "\n".join(lines)
 
     def plot(self, path=None):
@@ -132,30 +151,24 @@ class Fit:
         import h5py
 
         path = Path(path)
-        temporary = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        try:
-            with h5py.File(temporary, "w") as file:
-                file.attrs.update(
-                    optimizer=self.optimizer, loss=self.loss, iterations=self.iterations,
-                    evaluations=self.evaluations, wall_time=self.wall_time, scene=self.scene_toml,
-                    best_start=self.best_start, stopped=self.reasons[self.best_start],
-                )
-                file.create_dataset("names", data=np.array(self.names, dtype="S"))
-                for group, values in (("params", self.params), ("stderr", self.stderr)):
-                    for name, value in values.items():
-                        file.create_dataset(f"{group}/{name}", data=value)
-                file.create_dataset("covariance", data=self.covariance)
-                file.create_dataset("correlation", data=self.correlation)
-                for name, values in self.history.items():
-                    file.create_dataset(f"history/{name}", data=values)
-                file.create_dataset("starts/initial", data=self.start_values)
-                file.create_dataset("starts/final", data=self.final_values)
-                file.create_dataset("starts/loss", data=self.final_losses)
-                file.create_dataset("time", data=self.time)
-                for name, values in self.probes.items():
-                    file.create_dataset(f"probes/{name}", data=values)
-            os.replace(temporary, path)
-        finally:
-            if temporary.exists():
-                temporary.unlink()
+        with atomic_path(path) as temporary, h5py.File(temporary, "w") as file:
+            file.attrs.update(
+                optimizer=self.optimizer, loss=self.loss, iterations=self.iterations,
+                evaluations=self.evaluations, wall_time=self.wall_time, scene=self.scene_toml,
+                best_start=self.best_start, stopped=self.reasons[self.best_start], warning=self.warning,
+            )
+            file.create_dataset("names", data=np.array(self.names, dtype="S"))
+            for group, values in (("params", self.params), ("stderr", self.stderr)):
+                for name, value in values.items():
+                    file.create_dataset(f"{group}/{name}", data=value)
+            file.create_dataset("covariance", data=self.covariance)
+            file.create_dataset("correlation", data=self.correlation)
+            for name, values in self.history.items():
+                file.create_dataset(f"history/{name}", data=values)
+            file.create_dataset("starts/initial", data=self.start_values)
+            file.create_dataset("starts/final", data=self.final_values)
+            file.create_dataset("starts/loss", data=self.final_losses)
+            file.create_dataset("time", data=self.time)
+            for name, values in self.probes.items():
+                file.create_dataset(f"probes/{name}", data=values)
         return path

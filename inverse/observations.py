@@ -110,10 +110,18 @@ class Observations:
         """A jaxmpm output file (or any file with /time and /probes/NAME (T, k))."""
         import h5py
 
-        with h5py.File(path, "r") as file:
-            times = file["time"][()]
-            names = list(file["probes"]) if probes is None else list(probes)
-            data = {name: (times, file["probes"][name][()]) for name in names}
+        try:
+            with h5py.File(path, "r") as file:
+                if "time" not in file or "probes" not in file:
+                    raise SceneError(f"{path}: an observation file needs /time and /probes/NAME datasets.")
+                times = file["time"][()]
+                names = list(file["probes"]) if probes is None else list(probes)
+                missing = [name for name in names if name not in file["probes"]]
+                if missing:
+                    raise SceneError(f"{path} has no probe {missing[0]!r} (it has: {', '.join(file['probes'])}).")
+                data = {name: (times, file["probes"][name][()]) for name in names}
+        except OSError as error:
+            raise SceneError(f"{path} is not a readable HDF5 file ({error}).") from None
         return cls.from_arrays(data, sigma)
 
     def to_csv(self, path):

@@ -4,6 +4,7 @@ A fitted parameter is named by its path in `sim.params`, e.g. "sand.friction_ang
 decide the transform (SPEC section 5):
   (low, high)   scaled logit:  x = low + (high - low) sigmoid(z)
   (low, None)   log shift:     x = low + exp(z)          (e.g. (0, None) for a positive value)
+  (None, high)  log shift:     x = high - exp(z)
   (None, None)  identity:      x = z
 Everything not named stays at its value in the simulation's parameters.
 """
@@ -36,6 +37,8 @@ class Bounded:
             return jnp.log(fraction) - jnp.log1p(-fraction)
         if self.low is not None:
             return jnp.log(x - self.low)
+        if self.high is not None:
+            return jnp.log(self.high - x)
         return x
 
     def to_physical(self, z):
@@ -43,6 +46,8 @@ class Bounded:
             return self.low + (self.high - self.low) * jax.nn.sigmoid(z)
         if self.low is not None:
             return self.low + jnp.exp(z)
+        if self.high is not None:
+            return self.high - jnp.exp(z)
         return z
 
 
@@ -130,17 +135,20 @@ class ParameterSpace:
         return result
 
     def random_values(self, count, seed):
-        """`count` start vectors drawn uniformly inside the bounds (log-uniform above a lower
-        bound alone: within a factor 10 of the start); the first is the configured start."""
+        """`count` start vectors drawn uniformly inside the bounds (1-99 % of the range;
+        log-uniform beyond a single
+        bound: within a factor 10 of the start's distance to it); the first is the configured start."""
         rng = np.random.default_rng(seed)
         draws = [self.start_values()]
         for _ in range(count - 1):
             row = []
             for entry in self.entries:
                 if entry.low is not None and entry.high is not None:
-                    row.append(rng.uniform(entry.low, entry.high) * (1 - 1e-9) + 1e-9 * entry.low)
+                    row.append(entry.low + (entry.high - entry.low) * rng.uniform(0.01, 0.99))
                 elif entry.low is not None:
                     row.append(entry.low + (entry.start - entry.low) * 10.0 ** rng.uniform(-1.0, 1.0))
+                elif entry.high is not None:
+                    row.append(entry.high - (entry.high - entry.start) * 10.0 ** rng.uniform(-1.0, 1.0))
                 else:
                     row.append(entry.start + rng.normal() * max(1.0, abs(entry.start)))
             draws.append(np.array(row))

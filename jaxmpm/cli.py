@@ -111,6 +111,9 @@ def calibrate_command(arguments):
     except KeyboardInterrupt:
         print(f"jaxmpm: interrupted; resume with --resume (checkpoint {checkpoint})", file=sys.stderr)
         return 130
+    except jaxmpm.SimulationError as error:
+        print(f"jaxmpm: {error}", file=sys.stderr)
+        return 1
     fit.save(output)
     print(fit.summary())
     print(f"wrote {output}")

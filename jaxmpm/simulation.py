@@ -102,6 +102,7 @@ class Simulation:
         self.step = make_step(self.structure)
         self.observe = make_probes(scene, self.seeds)
         self._probes = jax.jit(self._probes_from_state)
+        self.compiled_cache = {}     # compiled work built on this simulation (e.g. calibrations)
         self._advance = jax.jit(self._advance_one_output)
 
     @property

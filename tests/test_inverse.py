@@ -15,6 +15,7 @@ import pytest
 import inverse
 import jaxmpm
 from inverse.calibrate import observation_data, residual_function
+from inverse.fit import gauss_newton
 from inverse.parameters import ParameterSpace
 from jaxmpm import SceneError
 
@@ -104,9 +105,10 @@ def test_loss_gradient_matches_central_differences():
     space = ParameterSpace(sim.params, FIT)
     residuals = residual_function(sim, observations, space)
     data = observation_data(sim, observations)
+    base = sim.cast(sim.params)
 
     def loss(values):
-        r = residuals(values, data)
+        r = residuals(values, data, base)
         return 0.5 * jnp.sum(r * r)
 
     point = jnp.array([WRONG[name] for name in FIT])
@@ -119,7 +121,7 @@ def test_loss_gradient_matches_central_differences():
         np.testing.assert_allclose(gradient[index], reference, rtol=1e-5)
 
 
-def test_twin_recovers_the_truth_from_noise_free_data():
+def test_twin_recovers_the_truth_from_noise_free_data(tmp_path):
     fit = inverse.calibrate(twin_simulation(), twin_observations(), FIT, starts=[WRONG],
                             max_iterations=60, progress=False)
     assert abs(fit.params["sand.friction_angle"] - 25.0) < 0.5
@@ -127,6 +129,22 @@ def test_twin_recovers_the_truth_from_noise_free_data():
     assert fit.params["sand.exponent"] == pytest.approx(2.0, rel=0.10)
     assert fit.loss < 1e-3 * fit.history["loss"][0, 0]
     assert fit.evaluations >= fit.iterations
+    figure = fit.plot(tmp_path / "fit.png")
+    assert len(figure.axes) == 4 and (tmp_path / "fit.png").stat().st_size > 0
+
+
+def test_multistart_batch_matches_separate_runs():
+    # Starts run together under jax.vmap must follow exactly the paths they follow alone.
+    sim = twin_simulation()
+    observations = twin_observations(noise=1e-5)
+    other = {"sand.friction_angle": 20.0, "sand.fluidity": 8.0, "sand.exponent": 1.5}
+    options = dict(optimizer="adam", learning_rate=0.05, max_iterations=4, progress=False)
+    together = inverse.calibrate(sim, observations, FIT, starts=[WRONG, other], **options)
+    for index, start in enumerate([WRONG, other]):
+        alone = inverse.calibrate(sim, observations, FIT, starts=[start], **options)
+        np.testing.assert_allclose(together.history["loss"][:, index], alone.history["loss"][:, 0], rtol=1e-10)
+        np.testing.assert_allclose(together.final_values[index], alone.final_values[0], rtol=1e-10)
+    assert np.all(np.diff(together.history["loss"], axis=0) < 0.0)   # Adam descends from both
 
 
 def test_standard_errors_shrink_with_noise_and_bracket_the_truth():
@@ -219,3 +237,34 @@ def test_calibrate_command(tmp_path, capsys):
     config.write_text(config.read_text().replace("max_iterations", "max_iteration"))
     assert main(["calibrate", str(config), "-o", str(output), "--quiet"]) == 2
     assert "optimizer.max_iteration" in capsys.readouterr().err
+
+
+def test_gauss_newton_reports_an_unconstrained_direction_as_infinite():
+    # r depends on theta_0 + theta_1 only: the data cannot tell the two apart, so both standard
+    # errors must be infinite (a pseudo-inverse would report 0), while a third, independent
+    # parameter keeps its exact standard error sigma / |dr/dtheta_2| = 1 / 2.
+    def residuals(theta):
+        return jnp.array([theta[0] + theta[1], 3.0 * (theta[0] + theta[1]), 2.0 * theta[2]])
+
+    covariance, _ = gauss_newton(residuals, np.array([1.0, 2.0, 3.0]), noise_known=True)
+    assert np.isinf(covariance[0, 0]) and np.isinf(covariance[1, 1])
+    np.testing.assert_allclose(np.sqrt(covariance[2, 2]), 0.5, rtol=1e-12)
+
+
+def test_bounds_transforms_round_trip_and_stay_inside():
+    params = {"sand": {"a": 2.0, "b": 3.0, "c": -1.0, "d": 0.5}}
+    space = ParameterSpace(params, {"sand.a": (1.0, 5.0), "sand.b": (0.0, None), "sand.c": (None, 0.0), "sand.d": (None, None)})
+    values = jnp.array([2.0, 3.0, -1.0, 0.5])
+    np.testing.assert_allclose(space.to_physical(space.to_unconstrained(values)), values, rtol=1e-12)
+    far = space.to_physical(jnp.array([40.0, -40.0, 40.0, 7.0]))
+    assert 1.0 < far[0] <= 5.0 and far[1] >= 0.0 and far[2] <= 0.0 and far[3] == 7.0
+    draws = space.random_values(50, seed=3)
+    assert np.all((draws[:, 0] > 1.0) & (draws[:, 0] < 5.0) & (draws[:, 1] > 0.0) & (draws[:, 2] < 0.0))
+
+
+def test_bounds_that_would_make_the_time_step_unstable_are_refused():
+    sim = twin_simulation()
+    with pytest.raises(SceneError, match=r"wave speed .* unstable"):
+        inverse.calibrate(sim, twin_observations(), {"sand.young": (1.0e5, 1.0e9)}, progress=False)
+    with pytest.raises(SceneError, match=r"fit.sand.young needs a high bound"):
+        inverse.calibrate(sim, twin_observations(), {"sand.young": (1.0e5, None)}, progress=False)
