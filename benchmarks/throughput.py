@@ -255,22 +255,22 @@ when other jobs run (see the load average): compare rows of one run, not runs. R
 with `python benchmarks/throughput.py` (about 2.5 minutes; `--quick` for the 10k rows)."""
 
 
-def write_doc(text: str):
-    DOC.parent.mkdir(parents=True, exist_ok=True)
-    section = f"{BEGIN}\n## Throughput, compile time, gradient cost, memory\n\n{text}\n\n{METHOD}\n{END}"
-    if DOC.exists():
-        current = DOC.read_text()
-        if BEGIN in current and END in current:
-            head, rest = current.split(BEGIN, 1)
-            tail = rest.split(END, 1)[1]
-            DOC.write_text(head + section + tail)
-            return
-        DOC.write_text(current.rstrip() + "\n\n" + section + "\n")
-        return
-    DOC.write_text(
-        "# Benchmarks\n\nFigures written by the scripts in `benchmarks/`; each script updates its own "
-        "section.\n\n" + section + "\n"
+def write_section(begin: str, end: str, body: str, doc: Path = DOC):
+    """Replace (or append) the part of docs/benchmarks.md between the markers begin and end."""
+    doc.parent.mkdir(parents=True, exist_ok=True)
+    section = f"{begin}\n{body}\n{end}"
+    current = doc.read_text() if doc.exists() else (
+        "# Benchmarks\n\nFigures written by the scripts in `benchmarks/`; each script updates its own section.\n"
     )
+    if begin in current and end in current:
+        head, rest = current.split(begin, 1)
+        doc.write_text(head + section + rest.split(end, 1)[1])
+    else:
+        doc.write_text(current.rstrip() + "\n\n" + section + "\n")
+
+
+def write_doc(text: str):
+    write_section(BEGIN, END, f"## Throughput, compile time, gradient cost, memory\n\n{text}\n\n{METHOD}")
 
 
 def main():

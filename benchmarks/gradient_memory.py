@@ -1,0 +1,79 @@
+"""Reverse-mode memory against rollout length: checkpointed segments vs one long scan.
+
+    python benchmarks/gradient_memory.py [--no-write]
+
+For the elastic block of benchmarks/throughput.py (2,500 points here, float64) and rollouts of
+100 to 3,200 steps, compile jax.grad of a probe-history loss and read XLA's temporary buffer
+size (`memory_analysis().temp_size_in_bytes`) for
+- the default `Checkpointing()` (segments of ceil(sqrt(steps)) steps): expected ~ sqrt(steps);
+- `Checkpointing(segment=steps)` (one segment: every step checkpointed, but all T states kept
+  for the backward pass): expected ~ steps.
+Nothing is run, only compiled, so the figures do not depend on the machine's load. Writes its
+table to docs/benchmarks.md between marker comments.
+"""
+
+import argparse
+import datetime
+import sys
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).parent))
+from throughput import block_scene, write_section  # noqa: E402
+
+import jaxmpm  # noqa: E402
+
+BEGIN, END = "<!-- gradient_memory:begin -->", "<!-- gradient_memory:end -->"
+STEPS = (100, 400, 1600, 3200)
+
+
+def temporary_megabytes(steps, checkpointing):
+    sim = jaxmpm.Simulation(block_scene(50, "float64", steps), checkpointing)
+
+    def loss(young):
+        probes = sim.probes({"block": dict(sim.params["block"], young=young)})
+        return jax.numpy.sum(probes["top"]) + jax.numpy.sum(probes["centre_of_mass"])
+
+    compiled = jax.jit(jax.grad(loss)).lower(1.0e6).compile()
+    return compiled.memory_analysis().temp_size_in_bytes / 1e6, sim.point_count
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--no-write", action="store_true")
+    arguments = parser.parse_args()
+    rows = []
+    for steps in STEPS:
+        sqrt_mb, points = temporary_megabytes(steps, jaxmpm.Checkpointing())
+        flat_mb, _ = temporary_megabytes(steps, jaxmpm.Checkpointing(segment=steps))
+        rows.append((steps, sqrt_mb, flat_mb))
+        print(f"{steps:5d} steps: segments {sqrt_mb:8.1f} MB, one scan {flat_mb:8.1f} MB", flush=True)
+    steps, sqrt_mb, flat_mb = (np.array(column) for column in zip(*rows))
+    slope_sqrt = np.polyfit(np.log(steps), np.log(sqrt_mb), 1)[0]
+    slope_flat = np.polyfit(np.log(steps), np.log(flat_mb), 1)[0]
+    lines = [
+        "## Reverse-mode memory against rollout length",
+        "",
+        f"Measured {datetime.date.today()} with `python benchmarks/gradient_memory.py` (JAX {jax.__version__}): "
+        f"XLA temporary memory of the compiled gradient of a probe loss, elastic block of "
+        f"{points} points, float64.",
+        "",
+        "| steps | default `Checkpointing()` (segments of ceil(sqrt(steps))) | `Checkpointing(segment=steps)` |",
+        "|---:|---:|---:|",
+        *[f"| {s} | {a:.1f} MB | {b:.1f} MB |" for s, a, b in rows],
+        "",
+        f"Fitted growth: memory ~ steps^{slope_sqrt:.2f} with segments, steps^{slope_flat:.2f} with one scan.",
+    ]
+    text = "\n".join(lines)
+    print(text)
+    if not arguments.no_write:
+        write_section(BEGIN, END, text)
+
+
+if __name__ == "__main__":
+    main()
