@@ -35,7 +35,7 @@ import jax.numpy as jnp
 from jaxmpm import tensors
 from jaxmpm.errors import SceneError
 from jaxmpm.materials.base import check_range, is_concrete
-from jaxmpm.materials.linear_elastic import bulk_and_shear_moduli, elastic_increment, p_wave_speed
+from jaxmpm.materials.linear_elastic import bulk_and_shear_moduli, elastic_trial, p_wave_speed
 
 CONES = {
     # m as a function of sin(angle); each matches Mohr-Coulomb in one stress state.
@@ -156,8 +156,7 @@ class DruckerPrager:
 
     def update(self, params, stress, velocity_gradient, dt, state):
         """One point: Jaumann rotation, elastic trial, plastic / viscoplastic correction."""
-        stress = tensors.jaumann_rotate(stress, velocity_gradient, dt)
-        trial = stress + elastic_increment(params, tensors.symmetric(velocity_gradient), dt)
+        trial = elastic_trial(params, stress, velocity_gradient, dt)
         stress, increment = self.correct(params, trial, dt)
         return stress, {"plastic_strain": state["plastic_strain"] + increment}
 

@@ -28,6 +28,13 @@ def elastic_increment(params, rate_of_deformation, dt):
     )
 
 
+def elastic_trial(params, stress, velocity_gradient, dt):
+    """Q sigma Q^T + dt (K tr(d) I + 2 G dev(d)): the stress rotated with the step's spin
+    (Jaumann, Hughes-Winget) plus the elastic increment; the trial state of every model."""
+    stress = tensors.jaumann_rotate(stress, velocity_gradient, dt)
+    return stress + elastic_increment(params, tensors.symmetric(velocity_gradient), dt)
+
+
 def p_wave_speed(params):
     """c_p = sqrt((K + 4 G / 3) / rho) [m/s], the speed that sets the CFL time step."""
     bulk, shear = bulk_and_shear_moduli(params["young"], params["poisson"])
@@ -63,9 +70,7 @@ class LinearElastic:
 
     def update(self, params, stress, velocity_gradient, dt, state):
         """One point: rotate sigma with the step's spin, add the elastic increment."""
-        stress = tensors.jaumann_rotate(stress, velocity_gradient, dt)
-        stress = stress + elastic_increment(params, tensors.symmetric(velocity_gradient), dt)
-        return stress, state
+        return elastic_trial(params, stress, velocity_gradient, dt), state
 
     def wave_speed(self, params):
         return p_wave_speed(params)
