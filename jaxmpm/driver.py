@@ -5,33 +5,20 @@ The element test behind every calibration: `drive(material, L, dt)` integrates a
 history, differentiable with respect to the material's parameters (pass them as JAX values).
 """
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 
 from jaxmpm.errors import SceneError
-from jaxmpm.materials import MODELS, material_parameters
+from jaxmpm.materials import material_parameters
+from jaxmpm.scene import _Table, read_material
 
 
 def as_material(material):
-    """A material object from a material object or a scene-style table {"model": ..., ...}."""
+    """A material object from a material object or a scene-style table {"model": ..., ...}
+    (read and checked as a [materials.NAME] table is; values may be JAX values)."""
     if not isinstance(material, dict):
         return material
-    table = dict(material)
-    model = table.pop("model", None)
-    if model not in MODELS:
-        raise SceneError(f"material model = {model!r} is not one of {', '.join(map(repr, MODELS))}.")
-    cls = MODELS[model]
-    known = {field.name for field in dataclasses.fields(cls)}
-    for key in table:
-        if key not in known:
-            raise SceneError(f"material.{key} is not a parameter of the {model} model.")
-    missing = [field.name for field in dataclasses.fields(cls)
-               if field.name not in table and field.default is dataclasses.MISSING]
-    if missing:
-        raise SceneError(f"material.{missing[0]} is missing: the {model} model needs it.")
-    material = cls(**table)
+    material = read_material(_Table(dict(material), "material"))
     material.check("material")
     return material
 

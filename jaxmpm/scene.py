@@ -19,7 +19,7 @@ import tomli_w
 
 from jaxmpm.errors import SceneError
 from jaxmpm.materials import MODELS
-from jaxmpm.materials.base import check_range, material_parameters, number_fields
+from jaxmpm.materials.base import check_range, is_concrete, material_parameters, number_fields
 
 REQUIRED = object()
 BOUNDARY_KINDS = ("fixed", "slip", "free")
@@ -277,6 +277,10 @@ class _Table:
 
 
 def _number(key, value):
+    if not is_concrete(value):          # a JAX value being differentiated (e.g. in `drive`)
+        return value
+    if hasattr(value, "dtype") and getattr(value, "shape", None) == ():
+        value = value.item()
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise SceneError(f"{key} = {value!r} must be a number.")
     if not math.isfinite(value):
@@ -313,7 +317,7 @@ def convert(key, value, kind):
     raise AssertionError(kind)
 
 
-def _read_material(table: _Table):
+def read_material(table: _Table):
     model = table.get("model", "str", choices=tuple(MODELS))
     cls = MODELS[model]
     numbers = number_fields(cls)
@@ -442,7 +446,7 @@ def scene_from_dict(data) -> Scene:
     material_tables = root.table("materials")
     material_tables.known = list(material_tables.data)
     materials = {
-        name: _read_material(material_tables.table(name)) for name in material_tables.data
+        name: read_material(material_tables.table(name)) for name in material_tables.data
     }
     material_tables.finish()
 
