@@ -30,7 +30,7 @@ from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps
 from jaxmpm.scene import Scene
 from jaxmpm.seeding import seed_bodies
 from jaxmpm.solver import BodyBlock, Structure, make_step
-from jaxmpm.state import Particles
+from jaxmpm.state import Particles, counters_at_start
 
 
 def check_dtype(scene: Scene):
@@ -136,9 +136,7 @@ class Simulation:
             mass=jnp.concatenate(masses),
             history=tuple(histories),
             flags=jnp.zeros((count,), jnp.int32),
-            step=jnp.zeros((), jnp.int32),
-            error_step=jnp.full((), -1, jnp.int32),
-            error_point=jnp.full((), -1, jnp.int32),
+            **counters_at_start(),
         )
 
     def body_initial_stress(self, body, block, material):
@@ -194,14 +192,11 @@ class Simulation:
 
         params = self.cast(self.params if params is None else params)
         particles = self.initial_state(params) if initial is None else initial
-        particles = particles.replace(
-            step=jnp.zeros((), jnp.int32), error_step=jnp.full((), -1, jnp.int32), error_point=jnp.full((), -1, jnp.int32)
-        )
+        particles = particles.replace(**counters_at_start())
         initial_x = particles.x
         fields = self.scene.snapshot_fields
         probes = {name: [np.asarray(value)[None]] for name, value in self.observe(particles, initial_x).items()}
         snapshots = [snapshot_fields(particles, initial_x, fields)]
-        result = None
         last_save = clock.monotonic()
         bar = tqdm(total=self.steps, unit="step", disable=not progress, desc=self.scene.name)
 

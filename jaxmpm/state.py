@@ -44,6 +44,15 @@ class Particles:
         return dataclasses.replace(self, **changes)
 
 
+def counters_at_start():
+    """{step, error_step, error_point} of a state that has taken no step and seen no error."""
+    return {
+        "step": jnp.zeros((), jnp.int32),
+        "error_step": jnp.full((), -1, jnp.int32),
+        "error_point": jnp.full((), -1, jnp.int32),
+    }
+
+
 def record_errors(particles, outside):
     """Raise the error bits of points that left the grid or went non-finite."""
     finite = (
