@@ -19,6 +19,7 @@ from pathlib import Path
 from jaxmpm.errors import SceneError
 
 USER_ERROR = 2
+NOT_YET = {"plot": "plot an output file", "export": "export an output file for ParaView"}
 
 
 def parse_assignment(text):
@@ -47,6 +48,9 @@ def build_parser():
     calibrate.add_argument("-o", "--output", help="fit HDF5 file (default: CONFIG name with .h5)")
     calibrate.add_argument("--resume", action="store_true", help="continue from OUTPUT.checkpoint.npz")
     calibrate.add_argument("--quiet", action="store_true", help="no progress bar")
+    for name in NOT_YET:
+        later = commands.add_parser(name, help=f"{NOT_YET[name]} (not available yet)")
+        later.add_argument("rest", nargs="*")
     return parser
 
 
@@ -122,6 +126,10 @@ def calibrate_command(arguments):
 
 def main(argv=None):
     arguments = build_parser().parse_args(argv)
+    if arguments.command in NOT_YET:
+        print(f"jaxmpm: error: 'jaxmpm {arguments.command}' is not available yet in jaxmpm "
+              "(for plots, see examples/plot_column_collapse.py and Fit.plot).", file=sys.stderr)
+        return USER_ERROR
     try:
         if arguments.command == "calibrate":
             return calibrate_command(arguments)
