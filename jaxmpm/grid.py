@@ -72,9 +72,26 @@ def scatter_to_nodes(layout, base, values):
 
 
 def gather_from_nodes(base, nodes, support):
-    """Node values (nx + 1, ny + 1, C) at each point's s x s stencil: (N, s, s, C)."""
-    offsets = jnp.arange(support, dtype=base.dtype)
-    return nodes[base[:, 0, None, None] + offsets[:, None], base[:, 1, None, None] + offsets[None, :]]
+    """Node values (nx + 1, ny + 1, C) at each point's s x s stencil: (N, s, s, C).
+
+    The mirror of `scatter_to_nodes`: every node first holds its s x s neighbours' values side
+    by side (s^2 shifted copies of the small node array), then each point reads ONE contiguous
+    row at its base node, instead of s^2 scattered reads.
+    """
+    nx, ny, channels = nodes.shape
+    # A base node is at most nx - s, so the wrapped-around part of each shift is never read.
+    neighbours = jnp.stack(
+        [jnp.roll(nodes, (-a, -b), axis=(0, 1)) for a in range(support) for b in range(support)], axis=2
+    )
+    rows = neighbours.reshape(nx * ny, support * support * channels)
+    return rows[base[:, 0] * ny + base[:, 1]].reshape(len(base), support, support, channels)
+
+
+def sum_over_stencil(values):
+    """Sum (N, s, s, ...) over the s x s stencil nodes, written as s^2 - 1 adds: XLA:CPU runs
+    such short reductions (and einsums with a point batch axis) as slow library kernels."""
+    support = values.shape[1]
+    return sum(values[:, a, b] for a in range(support) for b in range(support))
 
 
 def boundary_mask(layout, boundaries, dtype):

@@ -30,7 +30,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from jaxmpm.grid import GridLayout, boundary_mask, gather_from_nodes, scatter_to_nodes
+from jaxmpm.grid import GridLayout, boundary_mask, gather_from_nodes, scatter_to_nodes, sum_over_stencil
 from jaxmpm.state import record_errors
 
 MASS_FLOOR = 1e-10   # nodes lighter than this fraction of the heaviest point count as empty
@@ -71,23 +71,44 @@ class Structure:
 def point_momentum(particles, stencil, offsets):
     """Momentum each point gives its stencil nodes, (N, s, s, 2): m_p N_I v_p, plus the APIC
     affine part m_p N_I C_p (x_I - x_p) when `offsets` (x_I - x_p) are given."""
-    velocity = particles.v[:, None, None, :]
+    weighted = particles.mass[:, None, None] * stencil.weights
+    terms = [(weighted, particles.v)]
     if offsets is not None:
-        velocity = velocity + jnp.einsum("nij,nabj->nabi", particles.affine, offsets)
-    return (particles.mass[:, None, None, None] * stencil.weights[..., None]) * velocity
+        affine = particles.affine
+        terms += [(weighted * offsets[..., 0], affine[:, :, 0]), (weighted * offsets[..., 1], affine[:, :, 1])]
+    return combine_on_stencil(terms)
+
+
+def combine_on_stencil(terms):
+    """sum_k a_k[p, I] b_k[p, :] for terms [(a_k (N, s, s), b_k (N, C))]: stencil values built
+    by broadcast multiply-adds, which XLA:CPU vectorises (a concatenation along the channel
+    axis of (N, s, s, C) arrays it does not)."""
+    return sum(coefficient[..., None] * vector[:, None, None, :] for coefficient, vector in terms)
 
 
 def particles_to_grid(particles, stencil, offsets, layout, gravity):
-    """Node mass m_I, momentum p_I and force f_I = sum_p (m_p N_I g - V_p sigma_p . grad N_I)."""
+    """Node mass m_I, momentum p_I and force f_I = sum_p (m_p N_I g - V_p sigma_p . grad N_I).
+
+    Built as one (N, s, s, 5) array [m, p_x, p_y, f_x, f_y] for the single scatter."""
     weights, gradients = stencil.weights, stencil.gradients
-    mass = particles.mass[:, None, None] * weights
-    momentum = point_momentum(particles, stencil, offsets)
-    internal = -particles.volume[:, None, None, None] * jnp.einsum(
-        "nij,nabj->nabi", particles.stress[:, :2, :2], gradients
-    )
-    external = mass[..., None] * jnp.asarray(gravity, mass.dtype)
-    values = jnp.concatenate([mass[..., None], momentum, internal + external], axis=-1)
-    nodes = scatter_to_nodes(layout, stencil.base, values)
+    mass, velocity = particles.mass, particles.v
+    zero = jnp.zeros_like(mass)
+    gravity = jnp.asarray(gravity, mass.dtype)
+    stress = -particles.volume[:, None, None] * particles.stress[:, :2, :2]     # -V_p sigma_p
+
+    def channels(*columns):
+        return jnp.stack(columns, axis=1)
+
+    terms = [   # N_I [m, m v, m g] + dN_I/dx_j [0, 0, 0, -V sigma_xj, -V sigma_yj]
+        (weights, channels(mass, mass * velocity[:, 0], mass * velocity[:, 1], mass * gravity[0], mass * gravity[1])),
+        (gradients[..., 0], channels(zero, zero, zero, stress[:, 0, 0], stress[:, 1, 0])),
+        (gradients[..., 1], channels(zero, zero, zero, stress[:, 0, 1], stress[:, 1, 1])),
+    ]
+    if offsets is not None:   # APIC: m_p N_I C_p (x_I - x_p) joins the momentum
+        weighted, affine = mass[:, None, None] * weights, particles.affine
+        for axis in range(2):
+            terms.append((weighted * offsets[..., axis], channels(zero, affine[:, 0, axis], affine[:, 1, axis], zero, zero)))
+    nodes = scatter_to_nodes(layout, stencil.base, combine_on_stencil(terms))
     return nodes[..., 0], nodes[..., 1:3], nodes[..., 3:5]
 
 
@@ -121,7 +142,7 @@ def grid_to_particles(particles, stencil, velocity_old, velocity_new, transfer, 
     if transfer == "apic":
         flip = 0.0
     nodal = jnp.concatenate([velocity_new, velocity_new - velocity_old], axis=-1)
-    at_points = jnp.einsum("nab,nabc->nc", stencil.weights, gather_from_nodes(stencil.base, nodal, support))
+    at_points = sum_over_stencil(stencil.weights[..., None] * gather_from_nodes(stencil.base, nodal, support))
     grid_velocity, increment = at_points[:, :2], at_points[:, 2:]
     velocity = flip * (particles.v + increment) + (1.0 - flip) * grid_velocity
     return particles.replace(x=particles.x + dt * grid_velocity, v=velocity)
@@ -136,9 +157,8 @@ def remap_velocity(particles, stencil, layout, mass, mask, floor):
 def velocity_gradient(stencil, velocity):
     """L_p = sum_I v_I (x) grad N_I, embedded in 3x3 (plane strain: no out-of-plane rate)."""
     support = stencil.weights.shape[1]
-    in_plane = jnp.einsum(
-        "nabi,nabj->nij", gather_from_nodes(stencil.base, velocity, support), stencil.gradients
-    )
+    nodal = gather_from_nodes(stencil.base, velocity, support)
+    in_plane = sum_over_stencil(nodal[..., :, None] * stencil.gradients[..., None, :])
     return jnp.pad(in_plane, ((0, 0), (0, 1), (0, 1)))
 
 
