@@ -38,14 +38,6 @@ def von_mises(stress):
     return safe_sqrt(1.5 * squares)
 
 
-def matmul(a, b):
-    """a @ b of (..., n, n) tensors as explicit products and sums: XLA:CPU runs a batch of tiny
-    matrix products (a vmapped `@`) as a slow library call."""
-    n = a.shape[-1]
-    rows = [jnp.stack([sum(a[..., i, k] * b[..., k, j] for k in range(n)) for j in range(n)], axis=-1) for i in range(n)]
-    return jnp.stack(rows, axis=-2)
-
-
 def symmetric(tensor):
     """(t + t^T) / 2: the rate of deformation d from the velocity gradient L."""
     return 0.5 * (tensor + jnp.swapaxes(tensor, -1, -2))
@@ -75,4 +67,4 @@ def jaumann_rotate(stress, velocity_gradient, dt):
     sigma_dot = sigma_jaumann + sigma omega + (sigma omega)^T, omega_ij = (v_j,i - v_i,j)/2.
     """
     rotation = hughes_winget_rotation(velocity_gradient, dt)
-    return matmul(matmul(rotation, stress), rotation.T)
+    return rotation @ stress @ rotation.T
