@@ -2,6 +2,8 @@
 
     jaxmpm run SCENE.toml [-o OUT.h5] [--set sand.friction_angle=32 ...] [--quiet]
     jaxmpm calibrate CONFIG.toml [-o FIT.h5] [--resume] [--quiet]
+    jaxmpm plot OUT.h5 [-o OUT.png | .gif | .mp4] [--field q] [--snapshot -1] [--probes]
+    jaxmpm export OUT.h5 [-o OUT.pvd]
 
 Exit status: 0 done; 1 the run stopped early (the output file keeps what was computed, marked
 complete = false); 2 user error (one line naming the key and value, never a traceback);
@@ -19,7 +21,6 @@ from pathlib import Path
 from jaxmpm.errors import SceneError
 
 USER_ERROR = 2
-NOT_YET = {"plot": "plot an output file", "export": "export an output file for ParaView"}
 
 
 def parse_assignment(text):
@@ -48,9 +49,15 @@ def build_parser():
     calibrate.add_argument("-o", "--output", help="fit HDF5 file (default: CONFIG name with .h5)")
     calibrate.add_argument("--resume", action="store_true", help="continue from OUTPUT.checkpoint.npz")
     calibrate.add_argument("--quiet", action="store_true", help="no progress bar")
-    for name in NOT_YET:
-        later = commands.add_parser(name, help=f"{NOT_YET[name]} (not available yet)")
-        later.add_argument("rest", nargs="*")
+    plot = commands.add_parser("plot", help="draw a run: points coloured by a field, or probe histories")
+    plot.add_argument("result", help="output HDF5 file of `jaxmpm run`")
+    plot.add_argument("-o", "--output", help="PNG, GIF or MP4 file (default: RESULT name with .png)")
+    plot.add_argument("--field", help="colour by this field (default q; e.g. p, plastic_strain, displacement, speed)")
+    plot.add_argument("--snapshot", type=int, default=-1, help="snapshot index for a PNG (default -1, the last)")
+    plot.add_argument("--probes", action="store_true", help="plot the probe histories instead")
+    export = commands.add_parser("export", help="write ParaView files (PVD + VTU) of a run's snapshots")
+    export.add_argument("result", help="output HDF5 file of `jaxmpm run`")
+    export.add_argument("-o", "--output", help="PVD file (default: RESULT name with .pvd)")
     return parser
 
 
@@ -84,8 +91,8 @@ def run_command(arguments):
     return 0
 
 
-def output_path(argument, source):
-    output = Path(argument or Path(source).with_suffix(".h5").name)
+def output_path(argument, source, suffix=".h5"):
+    output = Path(argument or Path(source).with_suffix(suffix).name)
     if not output.parent.is_dir():
         raise SceneError(f"-o {str(output)!r}: the folder {str(output.parent)!r} does not exist.")
     if not os.access(output.parent, os.W_OK):
@@ -124,16 +131,62 @@ def calibrate_command(arguments):
     return 0
 
 
+def read_result(path):
+    """The Result in `path`, or one SceneError line if it is not a jaxmpm output file."""
+    import h5py
+
+    from jaxmpm.results import Result
+
+    if not Path(path).is_file():
+        raise SceneError(f"{path!r} does not exist.")
+    try:
+        return Result.load(path)
+    except (OSError, KeyError) as error:
+        if isinstance(error, OSError) and not h5py.is_hdf5(path):
+            raise SceneError(f"{path!r} is not an HDF5 file.") from None
+        raise SceneError(f"{path!r} is not a jaxmpm output file (written by `jaxmpm run`).") from None
+
+
+def plot_command(arguments):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from jaxmpm import plotting
+
+    result = read_result(arguments.result)
+    output = output_path(arguments.output, arguments.result, ".png")
+    if arguments.probes:
+        plotting.save_probes(result, output)
+    elif output.suffix.lower() in (".gif", ".mp4"):
+        plotting.save_animation(result, output, arguments.field)
+    else:
+        count = len(result.snapshots["time"])
+        if not -count <= arguments.snapshot < count:
+            raise SceneError(f"--snapshot {arguments.snapshot} is out of range: the file has {count} snapshots.")
+        plotting.save_snapshot(result, output, arguments.field, arguments.snapshot)
+    print(f"wrote {output}")
+    return 0
+
+
+def export_command(arguments):
+    from jaxmpm.export import export_paraview
+
+    result = read_result(arguments.result)
+    output = output_path(arguments.output, arguments.result, ".pvd")
+    if output.suffix.lower() != ".pvd":
+        raise SceneError(f"-o {str(output)!r}: the file type must be .pvd.")
+    export_paraview(result, output)
+    print(f"wrote {output} and its VTU files in {output.with_suffix('')}")
+    return 0
+
+
+COMMANDS = {"run": run_command, "calibrate": calibrate_command, "plot": plot_command, "export": export_command}
+
+
 def main(argv=None):
     arguments = build_parser().parse_args(argv)
-    if arguments.command in NOT_YET:
-        print(f"jaxmpm: error: 'jaxmpm {arguments.command}' is not available yet in jaxmpm "
-              "(for plots, see examples/plot_column_collapse.py and Fit.plot).", file=sys.stderr)
-        return USER_ERROR
     try:
-        if arguments.command == "calibrate":
-            return calibrate_command(arguments)
-        return run_command(arguments)
+        return COMMANDS[arguments.command](arguments)
     except SceneError as error:
         print(f"jaxmpm: error: {error}", file=sys.stderr)
         return USER_ERROR

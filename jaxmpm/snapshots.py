@@ -1,0 +1,96 @@
+"""A run's snapshots read back as per-point fields, for plots and export (host-side numpy).
+
+Points of all bodies are joined in scene order (the order of `[[bodies]]`), each tagged with
+its body number. Besides the stored fields (`x`, `v`, `displacement`, `stress`,
+`plastic_strain`, `volume`, `mass`), scalars derived from them can be asked for by name:
+
+    p             mean pressure -tr(sigma)/3, compression positive [Pa]
+    q             von Mises stress sqrt(3/2 s:s) [Pa]
+    sigma_xx, sigma_yy, sigma_xy, sigma_zz   stress components [Pa] (tension positive)
+    displacement  |u| [m] (from the stored displacement, or x minus its first snapshot)
+    speed         |v| [m/s]
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jaxmpm.errors import SceneError
+from jaxmpm.scene import Scene
+
+STRESS_COMPONENTS = {"sigma_xx": (0, 0), "sigma_yy": (1, 1), "sigma_xy": (0, 1), "sigma_zz": (2, 2)}
+DERIVED = {"p": "stress", "q": "stress", **{name: "stress" for name in STRESS_COMPONENTS},
+           "speed": "v"}
+
+
+class Snapshots:
+    """The snapshots of a `Result`: `len(snapshots)`, `times`, `positions(k)`, `field(name, k)`."""
+
+    def __init__(self, result):
+        self.scene = Scene.from_toml(result.scene_toml)
+        self.times = np.asarray(result.snapshots["time"])
+        self.bodies = [body.name for body in self.scene.bodies if body.name in result.snapshots]
+        fields = list(result.snapshots[self.bodies[0]]) if self.bodies else []
+        self.stored = {field: [np.asarray(result.snapshots[body][field]) for body in self.bodies] for field in fields}
+        counts = [per_body.shape[1] for per_body in self.stored[fields[0]]] if fields else []
+        self.body_number = np.repeat(np.arange(len(counts)), counts)
+
+    def __len__(self):
+        return len(self.times)
+
+    def stored_field(self, name, index):
+        """A stored field at snapshot `index`, all bodies joined: (N, ...)."""
+        return np.concatenate([per_body[index] for per_body in self.stored[name]])
+
+    def positions(self, index):
+        """(N, 2) point positions [m] at snapshot `index`: the stored `x`, or the seeded
+        positions plus the stored `displacement`."""
+        if "x" in self.stored:
+            return self.stored_field("x", index)
+        if "displacement" in self.stored:
+            from jaxmpm.seeding import seed_bodies
+
+            return seed_bodies(self.scene).positions + self.stored_field("displacement", index)
+        raise SceneError(
+            "the output file holds neither 'x' nor 'displacement' snapshots, so the points cannot "
+            "be placed: add one of them to scene.snapshot_fields."
+        )
+
+    def names(self):
+        """Every field name `field` accepts for this file."""
+        names = [name for name in self.stored if name != "x"]
+        names += [name for name, source in DERIVED.items() if source in self.stored]
+        if "x" in self.stored and "displacement" not in self.stored:
+            names.append("displacement")
+        return sorted(set(names) | {"body"})
+
+    def field(self, name, index):
+        """Field `name` at snapshot `index`, all bodies joined: (N,) for scalars."""
+        if name not in self.names():
+            raise SceneError(f"field {name!r} is not in this output file; choose one of {', '.join(self.names())}.")
+        if name == "body":
+            return self.body_number
+        if name == "displacement":
+            moved = (self.stored_field("displacement", index) if "displacement" in self.stored
+                     else self.positions(index) - self.positions(0))
+            return np.linalg.norm(moved, axis=1)
+        if name == "speed":
+            return np.linalg.norm(self.stored_field("v", index), axis=1)
+        if name in DERIVED:
+            return stress_scalar(name, self.stored_field("stress", index))
+        return self.stored_field(name, index)
+
+    def scalar_names(self):
+        """The fields that are one number per point (what a plot can colour by)."""
+        return [name for name in self.names() if self.field(name, 0).ndim == 1]
+
+
+def stress_scalar(name, stress):
+    """p, q or one component of (N, 3, 3) stresses (SPEC section 2 conventions)."""
+    if name in STRESS_COMPONENTS:
+        return stress[:, STRESS_COMPONENTS[name][0], STRESS_COMPONENTS[name][1]]
+    pressure = -np.trace(stress, axis1=1, axis2=2) / 3.0
+    if name == "p":
+        return pressure
+    deviator = stress + pressure[:, None, None] * np.eye(3)
+    return np.sqrt(1.5 * np.sum(deviator * deviator, axis=(1, 2)))
