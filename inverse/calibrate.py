@@ -74,11 +74,11 @@ def check_stable_over_bounds(sim, space: ParameterSpace):
                 raise SceneError(f"fit.{entry.path} needs a {extremes[key]} bound: the time step is fixed "
                                  "from the scene, and an unbounded value could make it unstable.")
             values[key] = bound
-        speed = float(material.wave_speed(values)) + max(np.hypot(*b.velocity) for b in sim.scene.bodies)
-        if sim.dt > sim.scene.grid.cell / speed:
+        limit = sim.stable_time_step({**sim.params, material_name: values})
+        if sim.dt > limit:
             raise SceneError(
-                f"fit bounds allow material {material_name!r} a wave speed of {speed:.4g} m/s, for which "
-                f"the scene's time step {sim.dt:.4g} s is unstable: narrow the bounds or lower scene.cfl."
+                f"fit bounds allow material {material_name!r} values that need a time step below "
+                f"{limit:.4g} s, but the scene's is {sim.dt:.4g} s: narrow the bounds or lower scene.cfl."
             )
 
 

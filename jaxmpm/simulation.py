@@ -24,6 +24,7 @@ from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.grid import GridLayout
 from jaxmpm.initial_stress import depth_below_top, geostatic_stress, jaky_k0
 from jaxmpm.materials import material_parameters
+from jaxmpm.materials.base import is_concrete
 from jaxmpm.probes import make_probes
 from jaxmpm.results import Result
 from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps
@@ -109,6 +110,29 @@ class Simulation:
     def point_count(self) -> int:
         return len(self.seeds.positions)
 
+    def stable_time_step(self, params) -> float:
+        """h / max over bodies of (c_p + |v0|) for these parameter values [s] (the scene's own
+        values give `scene.stable_dt`)."""
+        speeds = [
+            float(self.scene.material_of(body).wave_speed(params[body.material])) + math.hypot(*body.velocity)
+            for body in self.scene.bodies
+        ]
+        return self.scene.grid.cell / max(speeds)
+
+    def check_time_step(self, params):
+        """SceneError if concrete parameter values make the fixed time step unstable. Traced
+        values (inside jit, grad, vmap) cannot be checked here: there an unstable step shows up
+        as a non-finite state (error bits, SimulationError in `run`)."""
+        if not all(is_concrete(leaf) for leaf in jax.tree_util.tree_leaves(params)):
+            return
+        limit = self.stable_time_step(params)
+        if self.dt > limit:
+            raise SceneError(
+                f"these params need a time step below {limit:.4g} s, but the one fixed from the scene is "
+                f"{self.dt:.4g} s: build the Simulation from a scene holding the new values "
+                f"(scene.with_value) or lower scene.cfl."
+            )
+
     def cast(self, params):
         """Parameters as arrays of the scene's dtype (so values of any kind never retrace)."""
         return jax.tree_util.tree_map(lambda value: jnp.asarray(value, self.dtype), params)
@@ -171,12 +195,14 @@ class Simulation:
         (default `self.params`) and an optional initial state (default `initial_state(params)`).
         Differentiable with respect to params and to the initial state."""
         params = self.cast(self.params if params is None else params)
+        self.check_time_step(params)
         initial = self.initial_state(params) if initial is None else initial
         return self._probes(params, initial)[0]
 
     def final_state(self, params=None, initial: Particles | None = None) -> Particles:
         """The state after the last step (differentiable, like `probes`)."""
         params = self.cast(self.params if params is None else params)
+        self.check_time_step(params)
         initial = self.initial_state(params) if initial is None else initial
         return self._probes(params, initial)[1]
 
@@ -191,6 +217,7 @@ class Simulation:
         from tqdm.auto import tqdm
 
         params = self.cast(self.params if params is None else params)
+        self.check_time_step(params)
         particles = self.initial_state(params) if initial is None else initial
         particles = particles.replace(**counters_at_start())
         initial_x = particles.x

@@ -108,3 +108,22 @@ def test_set_into_a_value_is_a_clear_error():
         scene.with_value("scene.duration.x", 1.0)
     with pytest.raises(SceneError, match="--set nowhere.key"):
         scene.with_value("nowhere.key", 1.0)
+
+
+def test_parameters_that_make_the_fixed_time_step_unstable_are_refused():
+    # The step is fixed from the scene's values (CFL: dt <= cfl h / c_p). A hundredfold Young's
+    # modulus raises c_p tenfold, past the limit; the scene's own values and a softer material
+    # pass; traced values (inside grad) cannot be checked and are not.
+    import jax
+
+    sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK))
+    stiff = {"soil": dict(sim.params["soil"], young=100 * sim.params["soil"]["young"])}
+    assert sim.stable_time_step(sim.params) == pytest.approx(sim.scene.stable_dt, rel=1e-12)
+    assert sim.stable_time_step(stiff) == pytest.approx(sim.scene.stable_dt / 10.0, rel=1e-12)
+    for call in (sim.probes, sim.final_state, lambda p: sim.run(p, progress=False)):
+        with pytest.raises(SceneError, match=r"time step below .* fixed from the scene is"):
+            call(stiff)
+    soft = {"soil": dict(sim.params["soil"], young=0.5 * sim.params["soil"]["young"])}
+    assert sim.probes(soft)["top"].shape == (sim.steps + 1, 2)
+    gradient = jax.grad(lambda young: sim.probes({"soil": dict(sim.params["soil"], young=young)})["top"][-1, 1])
+    assert jax.numpy.isfinite(gradient(sim.params["soil"]["young"]))
