@@ -11,37 +11,50 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmpm.shapes import SHAPES
+from jaxmpm.shapes import make_shape, stencil
 
 
 @dataclasses.dataclass(frozen=True)
 class GridLayout:
-    """Static grid facts. origin (2,) [m]; cell [m]; cells (nx, ny)."""
+    """Static grid facts. origin (2,) [m]; cell [m]; cells (nx, ny); the shape function's name
+    and the points per cell it may depend on.
+
+    Node arrays hold the (nx + 1) x (ny + 1) grid nodes plus `ghost` layers of nodes outside
+    each edge for shape functions wider than a cell; node (i, j) of an array sits at
+    origin + (i - ghost, j - ghost) h.
+    """
 
     origin: tuple[float, float]
     cell: float
     cells: tuple[int, int]
     shape_name: str = "linear"
-
-    @property
-    def nodes(self):
-        return (self.cells[0] + 1, self.cells[1] + 1)
+    ppc: int = 2
 
     @property
     def shape(self):
-        return SHAPES[self.shape_name]
+        return make_shape(self.shape_name, self.ppc)
+
+    @property
+    def ghost(self):
+        return self.shape.ghost
+
+    @property
+    def nodes(self):
+        """Node array size (ghost layers included)."""
+        return (self.cells[0] + 1 + 2 * self.ghost, self.cells[1] + 1 + 2 * self.ghost)
 
     def local(self, positions):
         """Positions in cell units from the origin, (N, 2)."""
         return (positions - jnp.asarray(self.origin, positions.dtype)) / self.cell
 
     def stencil(self, positions):
-        return self.shape.stencil(self.local(positions), self.cells, self.cell)
+        return stencil(self.shape, self.local(positions) + self.ghost, self.nodes, self.cell)
 
     def node_offsets(self, base, positions, support):
         """x_I - x_p for each point's s x s stencil nodes: (N, s, s, 2) [m]."""
         offsets = jnp.arange(support, dtype=positions.dtype)
-        corner = jnp.asarray(self.origin, positions.dtype) + base.astype(positions.dtype) * self.cell - positions
+        first = (base - self.ghost).astype(positions.dtype)
+        corner = jnp.asarray(self.origin, positions.dtype) + first * self.cell - positions
         along_x = corner[:, None, 0] + offsets * self.cell
         along_y = corner[:, None, 1] + offsets * self.cell
         shape = (len(positions), support, support)
@@ -94,20 +107,79 @@ def sum_over_stencil(values):
     return sum(values[:, a, b] for a in range(support) for b in range(support))
 
 
-def boundary_mask(layout, boundaries, dtype):
-    """(nx + 1, ny + 1, 2) multiplier that zeroes the constrained velocity components.
+EDGES = {"left": (0, 0), "right": (0, -1), "bottom": (1, 0), "top": (1, -1)}   # (axis, side)
 
-    fixed: both components zero on the edge; slip: the normal component zero; free: none.
-    """
+
+def boundary_mask(layout, boundaries, dtype):
+    """(nodes_x, nodes_y, 2) multiplier that zeroes the constrained velocity components of the
+    edge nodes. fixed: both components; slip: the normal component; free: none."""
     mask = np.ones(layout.nodes + (2,))
-    edges = {"left": (0, 0), "right": (0, -1), "bottom": (1, 0), "top": (1, -1)}
-    for edge, (axis, index) in edges.items():
+    for edge, (axis, side) in EDGES.items():
         kind = getattr(boundaries, edge)
         if kind == "free":
             continue
-        components = [0, 1] if kind == "fixed" else [axis]
         selector = [slice(None), slice(None)]
-        selector[axis] = index
-        for component in components:
+        selector[axis] = layout.ghost if side == 0 else -1 - layout.ghost
+        for component in ([0, 1] if kind == "fixed" else [axis]):
             mask[tuple(selector) + (component,)] = 0.0
     return jnp.asarray(mask, dtype)
+
+
+def mirror_signs(kind, axis):
+    """Sign of each velocity component in the mirror image across an edge: -1 held, +1 free."""
+    return [-1.0 if kind == "fixed" or component == axis else 1.0 for component in (0, 1)]
+
+
+def fold_ghosts(nodes, layout, boundaries, scalars=1):
+    """Add what the points gave to ghost nodes beyond a fixed or slip edge onto the mirror
+    nodes inside, as if every point had a mirror image across the wall (mass with +, momentum
+    and force components with the mirror signs). nodes: (nodes_x, nodes_y, scalars + 2 k)
+    channels: `scalars` scalar ones (mass), then k (x, y) pairs (momentum, force). This keeps the lumped projection of a field next to the wall free of the
+    one-sided bias it would otherwise have (the support of the wall nodes is only partly filled).
+    """
+    if not layout.ghost:
+        return nodes
+    for edge, (axis, side) in EDGES.items():
+        kind = getattr(boundaries, edge)
+        if kind == "free":
+            continue
+        signs = [1.0] * scalars + mirror_signs(kind, axis) * ((nodes.shape[-1] - scalars) // 2)
+        signs = jnp.asarray(signs, nodes.dtype)
+        count = nodes.shape[axis]
+        edge_node = layout.ghost if side == 0 else count - 1 - layout.ghost
+        step = -1 if side == 0 else 1
+        for layer in range(1, layout.ghost + 1):
+            ghost, mirror = edge_node + step * layer, edge_node - step * layer
+            selector = [slice(None), slice(None)]
+            selector[axis] = mirror
+            nodes = nodes.at[tuple(selector)].add(signs * jnp.take(nodes, ghost, axis=axis))
+    return nodes
+
+
+def apply_edge_conditions(velocity, mask, layout, boundaries):
+    """Nodal velocities (nodes_x, nodes_y, 2) with the edge conditions applied.
+
+    Edge nodes: the constrained components are zeroed (`boundary_mask`). Ghost nodes beyond a
+    fixed or slip edge mirror the nodes inside: odd for a held component (so the field through
+    the wall is zero at the wall but keeps its slope there) and even for the free tangential
+    component of a slip edge. Zeroing the ghosts instead would also force a zero slope, which
+    stiffens the material next to the wall and costs an O(h) error with quadratic B-splines.
+    Beyond a free edge, ghost nodes are ordinary nodes.
+    """
+    velocity = velocity * mask
+    for edge, (axis, side) in EDGES.items():
+        kind = getattr(boundaries, edge)
+        if kind == "free":
+            continue
+        count = velocity.shape[axis]
+        edge_node = layout.ghost if side == 0 else count - 1 - layout.ghost
+        step = -1 if side == 0 else 1                    # from the edge outwards
+        for layer in range(1, layout.ghost + 1):
+            ghost, mirror = edge_node + step * layer, edge_node - step * layer
+            for component in (0, 1):
+                held = kind == "fixed" or component == axis
+                inside = jnp.take(velocity[..., component], mirror, axis=axis)
+                selector = [slice(None), slice(None), component]
+                selector[axis] = ghost
+                velocity = velocity.at[tuple(selector)].set(-inside if held else inside)
+    return velocity

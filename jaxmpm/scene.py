@@ -23,13 +23,14 @@ from jaxmpm.materials.base import check_range, is_concrete, material_parameters,
 
 REQUIRED = object()
 BOUNDARY_KINDS = ("fixed", "slip", "free")
+NUMERICS_CHOICES = {"shape": ("linear", "gimp", "bspline2"), "transfer": ("flip", "apic"),
+                    "dtype": ("float64", "float32"), "update": ("musl", "usl")}
 SNAPSHOT_FIELDS = ("x", "v", "displacement", "stress", "plastic_strain", "volume", "mass")
 PROBE_KINDS = ("displacement", "body_displacement", "body_rotation")
 NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")   # bodies, materials, probes: safe in HDF5 paths and --set
 # Keys the SPEC names whose physics is not built yet: rejected with a clear message, not ignored.
 NOT_YET = {
     "geometry": ("axisymmetric",),
-    "shape": ("gimp", "bspline2"),
     "kind": ("contact_force", "reaction"),
 }
 
@@ -433,13 +434,13 @@ def scene_from_dict(data) -> Scene:
     options.known = [f.name for f in dataclasses.fields(Numerics)]
     default = Numerics()
     numerics = Numerics(
-        shape=options.get("shape", "str", default.shape, choices=("linear",)),
-        transfer=options.get("transfer", "str", default.transfer, choices=("flip", "apic")),
+        shape=options.get("shape", "str", default.shape, choices=NUMERICS_CHOICES["shape"]),
+        transfer=options.get("transfer", "str", default.transfer, choices=NUMERICS_CHOICES["transfer"]),
         flip=options.get("flip", "float", default.flip),
         ppc=options.get("ppc", "int", default.ppc),
-        dtype=options.get("dtype", "str", default.dtype, choices=("float64", "float32")),
+        dtype=options.get("dtype", "str", default.dtype, choices=NUMERICS_CHOICES["dtype"]),
         damping=options.get("damping", "float", default.damping),
-        update=options.get("update", "str", default.update, choices=("musl", "usl")),
+        update=options.get("update", "str", default.update, choices=NUMERICS_CHOICES["update"]),
     )
     options.finish()
 
@@ -568,6 +569,10 @@ def check_scene(scene: Scene):
             )
 
     numerics = scene.numerics
+    for name, choices in NUMERICS_CHOICES.items():      # scenes built in Python skip the reader
+        value = getattr(numerics, name)
+        if value not in choices:
+            raise SceneError(f"numerics.{name} = {value!r} is not one of {', '.join(map(repr, choices))}.")
     check_range("numerics.flip", numerics.flip, low=0.0, high=1.0, low_inclusive=True, high_inclusive=True)
     check_range("numerics.ppc", numerics.ppc, low=1, high=8, low_inclusive=True, high_inclusive=True)
     check_range("numerics.damping", numerics.damping, low=0.0, high=1.0, low_inclusive=True, high_inclusive=True)

@@ -2,7 +2,18 @@
 
 A shape function gives, for N points, a stencil of s x s nodes: the lower-left node index
 `base` (N, 2), the weights N_I (N, s, s) and their gradients dN_I/dx (N, s, s, 2) [1/m].
-Each kind is a small frozen class; the solver picks one at trace time from `numerics.shape`.
+Every kind here is a tensor product of a 1-D function, so a kind only says what its 1-D
+function is on the s nodes around a point (`along`). Kinds that reach beyond the node next
+to a point need one ghost layer of nodes outside the grid (`ghost`), so points up to the grid
+edge keep a full stencil.
+
+    linear    tent functions of classic MPM (Sulsky et al. 1994; the paper's), s = 2
+    gimp      uGIMP: the tent smoothed over the point's undeformed cell of half-width
+              l = h / (2 ppc) (Bardenhagen & Kober 2004), s = 3
+    bspline2  quadratic B-spline (Steffen et al. 2008), s = 3, C1 across cell edges
+
+gimp and bspline2 remove the jump of grad N when a point crosses a cell edge, the source of
+linear MPM's cell-crossing error.
 """
 
 import dataclasses
@@ -22,23 +33,78 @@ class Stencil(NamedTuple):
 
 @dataclasses.dataclass(frozen=True)
 class Linear:
-    """Bilinear (tent) functions of classic MPM (Sulsky et al. 1994; the paper's choice)."""
+    """N(r) = 1 - |r| for |r| < 1 (r in cells)."""
 
     support: ClassVar[int] = 2
+    ghost: ClassVar[int] = 0
+    reach: ClassVar[float] = 0.0     # base node = floor(position - reach)
 
-    def stencil(self, local, cells, cell):
-        """local: (N, 2) positions in cell units from the grid origin; cells: (nx, ny)."""
-        upper = jnp.asarray(cells, jnp.int32) - 1
-        base = jnp.clip(jnp.floor(local).astype(jnp.int32), 0, upper)
-        fraction = local - base.astype(local.dtype)               # in [0, 1] inside the grid
-        along = jnp.stack([1.0 - fraction, fraction], axis=1)    # (N, 2 nodes, 2 axes)
-        slope = jnp.stack([-jnp.ones_like(fraction), jnp.ones_like(fraction)], axis=1) / cell
-        weights = along[:, :, None, 0] * along[:, None, :, 1]
-        gradients = jnp.stack(
-            [slope[:, :, None, 0] * along[:, None, :, 1], along[:, :, None, 0] * slope[:, None, :, 1]],
-            axis=-1,
-        )
-        return Stencil(base, weights, gradients)
+    def along(self, offset):
+        """1-D values and slopes d/dr (per cell) at the stencil nodes, (N, s, 2) each; `offset`
+        is the position minus the base node, in cells."""
+        return jnp.stack([1.0 - offset, offset], axis=1), jnp.stack([-jnp.ones_like(offset), jnp.ones_like(offset)], axis=1)
 
 
-SHAPES = {"linear": Linear()}
+@dataclasses.dataclass(frozen=True)
+class QuadraticBSpline:
+    """N(r) = 3/4 - r^2 for |r| < 1/2, (3/2 - |r|)^2 / 2 for 1/2 <= |r| < 3/2."""
+
+    support: ClassVar[int] = 3
+    ghost: ClassVar[int] = 1
+    reach: ClassVar[float] = 0.5
+
+    def along(self, offset):
+        # offset in [1/2, 3/2): the nodes sit at r = offset, offset - 1, offset - 2
+        first, middle, last = 1.5 - offset, offset - 1.0, offset - 0.5
+        values = jnp.stack([0.5 * first * first, 0.75 - middle * middle, 0.5 * last * last], axis=1)
+        slopes = jnp.stack([-first, -2.0 * middle, last], axis=1)
+        return values, slopes
+
+
+@dataclasses.dataclass(frozen=True)
+class UniformGIMP:
+    """uGIMP with a point half-width l (cells, l <= 1/2), r the point-to-node distance:
+    N = 1 - (r^2 + l^2) / (2 l) for |r| < l; 1 - |r| for l <= |r| < 1 - l;
+    (1 + l - |r|)^2 / (4 l) for 1 - l <= |r| < 1 + l; 0 beyond."""
+
+    half_width: float
+    support: ClassVar[int] = 3
+    ghost: ClassVar[int] = 1
+    reach: ClassVar[float] = 0.5
+
+    def along(self, offset):
+        width = self.half_width
+        distance = jnp.stack([offset, offset - 1.0, offset - 2.0], axis=1)
+        size, sign = jnp.abs(distance), jnp.sign(distance)
+        inner = size < width
+        outer = size >= 1.0 - width
+        tail = jnp.maximum(1.0 + width - size, 0.0)
+        values = jnp.where(inner, 1.0 - (distance * distance + width * width) / (2.0 * width),
+                           jnp.where(outer, tail * tail / (4.0 * width), 1.0 - size))
+        slopes = jnp.where(inner, -distance / width, jnp.where(outer, -sign * tail / (2.0 * width), -sign))
+        return values, slopes
+
+
+def make_shape(name, ppc):
+    """The shape function called `name` (numerics.shape) for ppc x ppc points per cell."""
+    if name == "linear":
+        return Linear()
+    if name == "bspline2":
+        return QuadraticBSpline()
+    if name == "gimp":
+        return UniformGIMP(half_width=0.5 / ppc)
+    raise ValueError(f"unknown shape function {name!r}")
+
+
+def stencil(shape, local, nodes, cell):
+    """The stencil of points at `local` (N, 2) positions in cells from node 0 of a grid with
+    `nodes` (nx, ny) nodes (ghosts included); cell [m]."""
+    upper = jnp.asarray(nodes, jnp.int32) - shape.support
+    base = jnp.clip(jnp.floor(local - shape.reach).astype(jnp.int32), 0, upper)
+    along, slope = shape.along(local - base.astype(local.dtype))     # (N, s, 2 axes)
+    slope = slope / cell
+    weights = along[:, :, None, 0] * along[:, None, :, 1]
+    gradients = jnp.stack(
+        [slope[:, :, None, 0] * along[:, None, :, 1], along[:, :, None, 0] * slope[:, None, :, 1]], axis=-1
+    )
+    return Stencil(base, weights, gradients)

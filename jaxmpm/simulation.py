@@ -89,7 +89,7 @@ class Simulation:
             for body, (start, stop) in zip(scene.bodies, self.seeds.slices)
         )
         self.structure = Structure(
-            layout=GridLayout(scene.grid.origin, scene.grid.cell, scene.grid.cells, scene.numerics.shape),
+            layout=GridLayout(scene.grid.origin, scene.grid.cell, scene.grid.cells, scene.numerics.shape, scene.numerics.ppc),
             boundaries=scene.grid.boundaries,
             gravity=scene.gravity,
             dt=self.dt,

@@ -30,7 +30,9 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from jaxmpm.grid import GridLayout, boundary_mask, gather_from_nodes, scatter_to_nodes, sum_over_stencil
+from jaxmpm.grid import (
+    GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
+)
 from jaxmpm.state import record_errors
 
 MASS_FLOOR = 1e-10   # nodes lighter than this fraction of the heaviest point count as empty
@@ -86,7 +88,7 @@ def combine_on_stencil(terms):
     return sum(coefficient[..., None] * vector[:, None, None, :] for coefficient, vector in terms)
 
 
-def particles_to_grid(particles, stencil, offsets, layout, gravity):
+def particles_to_grid(particles, stencil, offsets, layout, boundaries, gravity):
     """Node mass m_I, momentum p_I and force f_I = sum_p (m_p N_I g - V_p sigma_p . grad N_I).
 
     Built as one (N, s, s, 5) array [m, p_x, p_y, f_x, f_y] for the single scatter."""
@@ -108,7 +110,7 @@ def particles_to_grid(particles, stencil, offsets, layout, gravity):
         weighted, affine = mass[:, None, None] * weights, particles.affine
         for axis in range(2):
             terms.append((weighted * offsets[..., axis], channels(zero, affine[:, 0, axis], affine[:, 1, axis], zero, zero)))
-    nodes = scatter_to_nodes(layout, stencil.base, combine_on_stencil(terms))
+    nodes = fold_ghosts(scatter_to_nodes(layout, stencil.base, combine_on_stencil(terms)), layout, boundaries)
     return nodes[..., 0], nodes[..., 1:3], nodes[..., 3:5]
 
 
@@ -123,12 +125,12 @@ def local_damping(force, velocity, coefficient):
     return force - coefficient * jnp.abs(force) * jnp.sign(velocity)
 
 
-def update_grid_velocity(mass, momentum, force, dt, damping, mask, floor):
+def update_grid_velocity(mass, momentum, force, dt, damping, constrain, floor):
     """Nodal velocities before and after the step, with the edge conditions applied."""
-    velocity_old = safe_velocity(momentum, mass, floor) * mask
+    velocity_old = constrain(safe_velocity(momentum, mass, floor))
     if damping:
         force = local_damping(force, velocity_old, damping)
-    velocity_new = safe_velocity(momentum + dt * force, mass, floor) * mask
+    velocity_new = constrain(safe_velocity(momentum + dt * force, mass, floor))
     return velocity_old, velocity_new
 
 
@@ -148,10 +150,10 @@ def grid_to_particles(particles, stencil, velocity_old, velocity_new, transfer, 
     return particles.replace(x=particles.x + dt * grid_velocity, v=velocity)
 
 
-def remap_velocity(particles, stencil, layout, mass, mask, floor):
+def remap_velocity(particles, stencil, layout, boundaries, mass, constrain, floor):
     """MUSL: nodal velocity sum_p m_p v_p N_I / m_I from the updated point velocities."""
-    momentum = point_momentum(particles, stencil, None)
-    return safe_velocity(scatter_to_nodes(layout, stencil.base, momentum), mass, floor) * mask
+    momentum = scatter_to_nodes(layout, stencil.base, point_momentum(particles, stencil, None))
+    return constrain(safe_velocity(fold_ghosts(momentum, layout, boundaries, scalars=0), mass, floor))
 
 
 def velocity_gradient(stencil, velocity):
@@ -188,23 +190,27 @@ def make_step(structure: Structure):
 
     def step(params, particles):
         mask = boundary_mask(layout, structure.boundaries, particles.x.dtype)
+
+        def constrain(velocity):
+            return apply_edge_conditions(velocity, mask, layout, structure.boundaries)
+
         floor = MASS_FLOOR * jnp.max(particles.mass)
         stencil = jax.named_call(layout.stencil, name="shape_functions")(particles.x)
         offsets = None
         if structure.transfer == "apic":
             offsets = layout.node_offsets(stencil.base, particles.x, stencil.weights.shape[1])
         mass, momentum, force = jax.named_call(particles_to_grid, name="particles_to_grid")(
-            particles, stencil, offsets, layout, structure.gravity
+            particles, stencil, offsets, layout, structure.boundaries, structure.gravity
         )
         velocity_old, velocity_new = jax.named_call(update_grid_velocity, name="update_grid")(
-            mass, momentum, force, dt, structure.damping, mask, floor
+            mass, momentum, force, dt, structure.damping, constrain, floor
         )
         particles = jax.named_call(grid_to_particles, name="grid_to_particles")(
             particles, stencil, velocity_old, velocity_new, structure.transfer, structure.flip, dt
         )
         if structure.update == "musl":
             velocity_new = jax.named_call(remap_velocity, name="remap_velocity")(
-                particles, stencil, layout, mass, mask, floor
+                particles, stencil, layout, structure.boundaries, mass, constrain, floor
             )
         gradient = velocity_gradient(stencil, velocity_new)
         if structure.transfer == "apic":

@@ -247,7 +247,7 @@ def cell_means(positions, cell, values):
 
 
 @functools.lru_cache(maxsize=None)
-def settled_confined_column(poisson, cell):
+def settled_confined_column(poisson, cell, shape="linear"):
     """examples/elastic_column.toml at `cell` and `poisson`, damped to rest: local damping 0.7
     (the example's 0.1 leaves 5e-5 m/s after its 0.5 s) for 0.15 s, about 9 periods 4H/c_p of
     the first mode (left: < 1e-6 m/s). Returns the initial positions, the final stress and
@@ -260,6 +260,7 @@ def settled_confined_column(poisson, cell):
         ("scene.duration", 0.15),
         ("scene.output_every", 0.15),
         ("scene.snapshot_fields", ["v", "stress"]),
+        ("numerics.shape", shape),
     ]:
         scene = scene.with_value(key, value)
     sim = jaxmpm.Simulation(scene)

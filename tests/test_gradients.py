@@ -16,13 +16,13 @@ from tests.scenes import BLOCK
 
 
 @functools.lru_cache
-def shared_simulation(update="musl"):
-    """One compiled simulation per update scheme, shared by the tests that only read it."""
-    return small_simulation(update)
+def shared_simulation(update="musl", shape="linear"):
+    """One compiled simulation per update scheme and shape, shared by the tests that only read it."""
+    return small_simulation(update, shape)
 
 
-def small_simulation(update="musl"):
-    scene = jaxmpm.Scene.from_toml(BLOCK.replace("[numerics]", f'[numerics]\nupdate = "{update}"'))
+def small_simulation(update="musl", shape="linear"):
+    scene = jaxmpm.Scene.from_toml(BLOCK.replace("[numerics]", f'[numerics]\nupdate = "{update}"\nshape = "{shape}"'))
     return jaxmpm.Simulation(scene)
 
 
@@ -42,10 +42,10 @@ def central_difference(function, params, material, name, relative_step=1e-6):
     return (shifted(step) - shifted(-step)) / (2.0 * step)
 
 
-@pytest.mark.parametrize("update", ["musl", "usl"])
+@pytest.mark.parametrize("update, shape", [("musl", "linear"), ("usl", "linear"), ("musl", "gimp"), ("musl", "bspline2")])
 @pytest.mark.parametrize("name", ["young", "density", "poisson"])
-def test_probe_gradient_matches_central_differences(update, name):
-    sim = shared_simulation(update)
+def test_probe_gradient_matches_central_differences(update, shape, name):
+    sim = shared_simulation(update, shape)
     params = sim.params
     gradient = jax.grad(lambda p: settlement_measure(sim, p))(params)["soil"][name]
     reference = central_difference(lambda p: settlement_measure(sim, p), params, "soil", name)
@@ -53,11 +53,12 @@ def test_probe_gradient_matches_central_differences(update, name):
     np.testing.assert_allclose(gradient, reference, rtol=1e-5)
 
 
-def test_gradients_are_finite_with_empty_nodes_and_fixed_edges():
-    # Most of the grid is empty (zero-mass nodes) and two edges are constrained: the
-    # guarded p / m must give finite gradients everywhere (PERFORMANCE.md: a peer returned
-    # NaN gradients exactly here).
-    sim = shared_simulation()
+@pytest.mark.parametrize("shape", ["linear", "bspline2"])
+def test_gradients_are_finite_with_empty_nodes_and_fixed_edges(shape):
+    # Most of the grid is empty (zero-mass nodes) and two edges are constrained (with bspline2,
+    # through mirrored ghost nodes): the guarded p / m must give finite gradients everywhere
+    # (PERFORMANCE.md: a peer returned NaN gradients exactly here).
+    sim = shared_simulation("musl", shape)
     gradient = jax.grad(lambda p: jnp.sum(sim.final_state(p).v ** 2))(sim.params)
     assert all(np.isfinite(value) for value in jax.tree_util.tree_leaves(gradient))
 
