@@ -38,14 +38,15 @@ SIZES = {10_000: 100, 16_384: 128}     # points -> cells across the 1 m box (blo
 # XLA:CPU (jaxlib 0.10) hands reductions to YNNPACK library fusions, which are slow for the
 # short reductions of this solver; one extra case measures the scene with them switched off.
 NO_YNN = "--xla_cpu_experimental_ynn_fusion_type="
-CASES = [  # (points, dtype, material, extra XLA_FLAGS)
-    (10_000, "float32", "elastic", ""),
-    (10_000, "float64", "elastic", ""),
-    (16_384, "float32", "elastic", ""),
-    (16_384, "float64", "elastic", ""),
-    (16_384, "float32", "elastic", NO_YNN),
-    (16_384, "float32", "drucker_prager", ""),
-    (16_384, "float64", "drucker_prager", ""),
+CASES = [  # (points, dtype, material, shape function, extra XLA_FLAGS)
+    (10_000, "float32", "elastic", "linear", ""),
+    (10_000, "float64", "elastic", "linear", ""),
+    (16_384, "float32", "elastic", "linear", ""),
+    (16_384, "float64", "elastic", "linear", ""),
+    (16_384, "float32", "elastic", "linear", NO_YNN),
+    (16_384, "float32", "drucker_prager", "linear", ""),
+    (16_384, "float64", "drucker_prager", "linear", ""),
+    (16_384, "float32", "drucker_prager", "bspline2", ""),
 ]
 STEPS_PER_CALL = 100                   # steps per `sim._advance` call (one output interval)
 GRADIENT_STEPS = 200                   # steps of the rollout differentiated for the ratio
@@ -54,7 +55,7 @@ GRADIENT_STEPS = 200                   # steps of the rollout differentiated for
 # --------------------------------------------------------------------------- the scene
 
 
-def block_scene(cells: int, dtype: str, steps: int, material: str = "elastic"):
+def block_scene(cells: int, dtype: str, steps: int, material: str = "elastic", shape: str = "linear"):
     """The benchmark scene: `steps` steps in outputs of STEPS_PER_CALL steps. material:
     "elastic", or "drucker_prager" (the same block as sand, phi = 30 deg, which slumps)."""
     from jaxmpm import Body, Boundaries, DruckerPrager, Grid, LinearElastic, Numerics, Probe, Rectangle, Scene
@@ -70,7 +71,7 @@ def block_scene(cells: int, dtype: str, steps: int, material: str = "elastic"):
         duration=dt * steps,
         dt=dt,
         output_every=dt * min(steps, STEPS_PER_CALL),
-        numerics=Numerics(shape="linear", ppc=2, flip=0.99, update="musl", dtype=dtype),
+        numerics=Numerics(shape=shape, ppc=2, flip=0.99, update="musl", dtype=dtype),
         probes=(
             Probe("top", "displacement", at=(0.5, 0.5)),
             Probe("centre_of_mass", "body_displacement", body="block"),
@@ -98,7 +99,7 @@ def timed(function, *args):
     return time.perf_counter() - start
 
 
-def run_case(points: int, dtype: str, material: str, repeats: int) -> dict:
+def run_case(points: int, dtype: str, material: str, shape: str, repeats: int) -> dict:
     import jax
 
     if dtype == "float64":
@@ -108,11 +109,11 @@ def run_case(points: int, dtype: str, material: str, repeats: int) -> dict:
     from jaxmpm import Simulation
 
     cells = SIZES[points]
-    result = {"points": points, "dtype": dtype, "material": material, "rss_start_mb": None}
+    result = {"points": points, "dtype": dtype, "material": material, "shape": shape, "rss_start_mb": None}
 
     # Forward: one output interval of STEPS_PER_CALL steps (lax.scan), the loop `Simulation.run`
     # drives. Every repeat starts from the same initial state.
-    sim = Simulation(block_scene(cells, dtype, STEPS_PER_CALL, material))
+    sim = Simulation(block_scene(cells, dtype, STEPS_PER_CALL, material, shape))
     assert sim.point_count == points, sim.point_count
     params = sim.cast(sim.params)
     initial = sim.initial_state(params)
@@ -138,7 +139,7 @@ def run_case(points: int, dtype: str, material: str, repeats: int) -> dict:
 
     # Reverse mode: d/dE of a scalar of the probe histories of a GRADIENT_STEPS rollout
     # (checkpointed, default segments), against the same scalar computed forward only.
-    sim = Simulation(block_scene(cells, dtype, GRADIENT_STEPS, material))
+    sim = Simulation(block_scene(cells, dtype, GRADIENT_STEPS, material, shape))
 
     def loss(young):
         params = dict(sim.params)
@@ -216,7 +217,7 @@ def table(results: list[dict], machine: dict, load_before: float) -> str:
         f"{machine['date']}; 1-minute load average {load_before:.1f} before and "
         f"{machine['load']:.1f} after the run (0 = idle machine).",
         "",
-        "| points | material | dtype | forward M particle-steps/s, best / median | per CPU-second | "
+        "| points | material, shape | dtype | forward M particle-steps/s, best / median | per CPU-second | "
         "compile forward | gradient / forward time | compile gradient | "
         "peak RSS forward / gradient | XLA temp, gradient |",
         "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|",
@@ -224,7 +225,7 @@ def table(results: list[dict], machine: dict, load_before: float) -> str:
     for r in results:
         label = r["dtype"] + (", YNNPACK fusion off" if NO_YNN in r.get("xla_flags", "") else "")
         lines.append(
-            f"| {r['points']:,} | {r['material'].replace('_', '-')} | {label} | {r['throughput_best'] / 1e6:.2f} / "
+            f"| {r['points']:,} | {r['material'].replace('_', '-')}, {r['shape']} | {label} | {r['throughput_best'] / 1e6:.2f} / "
             f"{r['throughput_median'] / 1e6:.2f} | {r['throughput_per_cpu_second'] / 1e6:.2f} | "
             f"{r['compile_forward_s']:.2f} s | "
             f"{r['grad_ratio']:.1f}x | {r['compile_grad_s']:.1f} s | "
@@ -237,10 +238,12 @@ METHOD = f"""\
 Method. Scene: a linear-elastic block (rho = 1000 kg/m^3, E = 1 MPa, nu = 0.3) resting on the
 fixed floor of a 1 m x 1 m box under gravity, or the same block as rate-independent
 Drucker-Prager sand (phi = 30 deg, the paper's cone), which slumps under its own weight (the
-last rows: the material of PERFORMANCE.md's peers); linear shape functions, 2 x 2 points per cell,
+last rows: the material of PERFORMANCE.md's peers); linear shape functions (the last row:
+quadratic B-splines, as the peers used), 2 x 2 points per cell,
 MUSL, FLIP 0.99, dt = 0.4 h / (40 m/s); 10,000 points on a 100^2 grid, and 16,384 points on the
-128^2 grid of the comparison in /work/shared/PERFORMANCE.md (whose peers ran Drucker-Prager sand
-with quadratic B-splines, so compare orders of magnitude, not digits). Forward throughput is
+128^2 grid of the comparison in /work/shared/PERFORMANCE.md (whose peers ran APIC/MLS with a
+Hencky-strain Drucker-Prager, a different step, so compare orders of magnitude, not digits).
+Forward throughput is
 points x {STEPS_PER_CALL} / wall time of one `Simulation._advance` call ({STEPS_PER_CALL} steps
 in a `lax.scan`, the loop `Simulation.run` drives), outputs ready (`block_until_ready`), after
 compilation, always from the same initial state; best and median of the repeats. "Per
@@ -284,26 +287,26 @@ def main():
     parser.add_argument("--no-write", action="store_true", help="print the table only")
     parser.add_argument("--quick", action="store_true", help="10k points, fewer repeats")
     parser.add_argument("--repeats", type=int, default=None, help="forward repeats per case")
-    parser.add_argument("--case", nargs=3, metavar=("POINTS", "DTYPE", "MATERIAL"), help=argparse.SUPPRESS)
+    parser.add_argument("--case", nargs=4, metavar=("POINTS", "DTYPE", "MATERIAL", "SHAPE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     repeats = args.repeats or (3 if args.quick else 7)
 
     if args.case:                       # worker: one case, JSON on the last line of stdout
-        print(json.dumps(run_case(int(args.case[0]), args.case[1], args.case[2], repeats)))
+        print(json.dumps(run_case(int(args.case[0]), args.case[1], args.case[2], args.case[3], repeats)))
         return
 
-    cases = [case for case in CASES if case[0] == 10_000 and not case[3]] if args.quick else CASES
+    cases = [case for case in CASES if case[0] == 10_000 and not case[4]] if args.quick else CASES
     results, start = [], time.perf_counter()
     load_before = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    for points, dtype, material, flags in cases:
-        print(f"case {points:,} points {dtype} {material} {flags} ...", file=sys.stderr, flush=True)
-        command = [sys.executable, __file__, "--case", str(points), dtype, material, "--repeats", str(repeats)]
+    for points, dtype, material, shape, flags in cases:
+        print(f"case {points:,} points {dtype} {material} {shape} {flags} ...", file=sys.stderr, flush=True)
+        command = [sys.executable, __file__, "--case", str(points), dtype, material, shape, "--repeats", str(repeats)]
         environment = dict(os.environ)
         environment["XLA_FLAGS"] = " ".join(filter(None, [environment.get("XLA_FLAGS", ""), flags]))
         done = subprocess.run(command, capture_output=True, text=True, env=environment)
         if done.returncode != 0:
             sys.stderr.write(done.stderr)
-            raise SystemExit(f"case {points} {dtype} {material} {flags} failed")
+            raise SystemExit(f"case {points} {dtype} {material} {shape} {flags} failed")
         result = json.loads(done.stdout.strip().splitlines()[-1])
         result["xla_flags"] = flags
         results.append(result)

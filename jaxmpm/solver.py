@@ -15,10 +15,12 @@ weakness of USL). `update = "usl"` uses the grid velocity directly (one scatter 
 Transfers: FLIP/PIC blend (`flip` = 1 pure FLIP, 0 pure PIC), or APIC (Jiang et al. 2015):
 points carry an affine velocity C_p; momentum goes to the grid as m_p N_I (v_p + C_p (x_I - x_p))
 and comes back as v_p = sum N_I v_I, C_p = sum v_I (x) grad N_I (for multilinear shape functions
-this is B_p D_p^-1 exactly). C_p is the velocity gradient that drives the stress: with MUSL it
+this is B_p D_p^-1 exactly; for gimp and bspline2 it is the velocity gradient, as in MLS-MPM,
+not B_p D_p^-1). C_p is the velocity gradient that drives the stress: with MUSL it
 comes from the re-mapped velocities, so nodes of tiny mass at a free surface (where f / m is
 large while grad N is not small) cannot inject a huge affine velocity; the price is that
-angular momentum is then kept only approximately (exactly with `update = "usl"`). APIC avoids
+angular momentum is then kept only approximately (exactly with `update = "usl"` and linear
+shape functions). APIC avoids
 FLIP's noise and PIC's dissipation, and has no blend to tune.
 
 `make_step(structure)` closes over the static structure and returns a pure
