@@ -257,11 +257,11 @@ forward step three times and the backward step once). Each case runs in a fresh 
 peak RSS is `getrusage` maxrss after the forward runs and after the gradient runs (including
 the ~0.3 GB of the Python and JAX runtime and of compilation); XLA temp is the compiled
 gradient's `memory_analysis().temp_size_in_bytes`. float32 cases run without JAX's 64-bit mode,
-float64 cases with it. The last row sets `XLA_FLAGS={NO_YNN}`, which stops XLA:CPU (jaxlib
+float64 cases with it. The row marked "YNNPACK fusion off" sets `XLA_FLAGS={NO_YNN}`, which stops XLA:CPU (jaxlib
 0.10) from sending reductions to YNNPACK library kernels, slow for this solver's short
 reductions. Timings on this shared 2-core VM move by +-10 % when it is idle and by up to 2x
 when other jobs run (see the load average): compare rows of one run, not runs. Regenerate
-with `python benchmarks/throughput.py` (about 2.5 minutes; `--quick` for the 10k rows)."""
+with `python benchmarks/throughput.py` (about 4 minutes; `--quick` for the 10k rows)."""
 
 
 def write_section(begin: str, end: str, body: str, doc: Path = DOC):
