@@ -32,6 +32,7 @@ from inverse.parameters import ParameterSpace
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.files import atomic_path
 from jaxmpm.simulation import describe_failure
+from jaxmpm.xla_options import jit_reverse_mode
 
 OPTIMIZERS = ("lbfgs", "adam")
 
@@ -147,8 +148,8 @@ def compiled_problem(sim, observations, space, optimizer_name, learning_rate) ->
     batched = functools.partial(jax.vmap, in_axes=(0, 0, None, None))
     problem = CompiledProblem(
         residuals=residuals,
-        start=jax.jit(batched(functools.partial(one_iteration, stored=False))),
-        iterate=jax.jit(batched(functools.partial(one_iteration, stored=optimizer_name == "lbfgs"))),
+        start=jit_reverse_mode(batched(functools.partial(one_iteration, stored=False))),
+        iterate=jit_reverse_mode(batched(functools.partial(one_iteration, stored=optimizer_name == "lbfgs"))),
         losses=jax.jit(jax.vmap(loss_of_z, in_axes=(0, None, None))),
         init=jax.jit(jax.vmap(transform.init)),
     )

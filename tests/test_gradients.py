@@ -109,3 +109,29 @@ def test_checkpoint_segments_do_not_change_values_or_gradients(segment):
     value_ref, gradient_ref = jax.value_and_grad(lambda p: settlement_measure(reference, p))(sim.params)
     np.testing.assert_allclose(value, value_ref, rtol=1e-12)
     np.testing.assert_allclose(gradient["soil"]["young"], gradient_ref["soil"]["young"], rtol=1e-10)
+
+
+def test_reverse_mode_jit_drops_library_reductions_and_keeps_the_gradient():
+    # jaxmpm.xla_options: calibration gradients are compiled without XLA:CPU's YNNPACK
+    # reduction kernels (15-17 % faster backward passes, docs/benchmarks.md); the numbers must
+    # not change beyond round-off, and the option must really reach the compiled program. XLA
+    # uses those kernels only for large enough arrays, hence a block of 1,600 points.
+    from jaxmpm.xla_options import jit_reverse_mode, reverse_mode_options
+
+    finer = {"cell = 0.05": "cell = 0.01", "duration = 0.01": "duration = 0.001", "output_every = 0.005": "output_every = 0.001"}
+    text = BLOCK
+    for old, new in finer.items():
+        text = text.replace(old, new)
+    scene = jaxmpm.Scene.from_toml(text)
+    sim = jaxmpm.Simulation(scene)
+    young = sim.params["soil"]["young"]
+
+    def loss(value):
+        return settlement_measure(sim, {"soil": dict(sim.params["soil"], young=value)})
+
+    plain, tuned = jax.jit(jax.grad(loss)), jit_reverse_mode(jax.grad(loss))
+    np.testing.assert_allclose(tuned(young), plain(young), rtol=1e-12)
+    if reverse_mode_options():
+        # (the HLO text also carries Python frame names, so look for the fusion kind itself)
+        assert "ynn_fusion" in plain.lower(young).compile().as_text()
+        assert "ynn_fusion" not in tuned.lower(young).compile().as_text()
