@@ -133,9 +133,11 @@ def mirror_signs(kind, axis):
 def fold_ghosts(nodes, layout, boundaries, scalars=1):
     """Add what the points gave to ghost nodes beyond a fixed or slip edge onto the mirror
     nodes inside, as if every point had a mirror image across the wall (mass with +, momentum
-    and force components with the mirror signs). nodes: (nodes_x, nodes_y, scalars + 2 k)
-    channels: `scalars` scalar ones (mass), then k (x, y) pairs (momentum, force). This keeps the lumped projection of a field next to the wall free of the
-    one-sided bias it would otherwise have (the support of the wall nodes is only partly filled).
+    and force components with the mirror signs).
+
+    nodes: (nodes_x, nodes_y, scalars + 2 k): `scalars` scalar channels (mass), then k (x, y)
+    pairs (momentum, force). Without this, the lumped projection of a field is biased next to
+    the wall, where the support of the nodes is only partly filled with material.
     """
     if not layout.ghost:
         return nodes
