@@ -76,6 +76,25 @@ class Result:
                     group.create_dataset(field, data=values, compression="gzip", compression_opts=4)
         return path
 
+    def plot(self, field=None, snapshot=-1):
+        """A matplotlib figure of one snapshot, points coloured by `field` (default q); see
+        `jaxmpm.plotting` (in Jupyter the returned figure shows itself)."""
+        from jaxmpm.plotting import snapshot_figure
+
+        return snapshot_figure(self, field, snapshot)
+
+    def plot_probes(self):
+        """A matplotlib figure of every probe history against time."""
+        from jaxmpm.plotting import probes_figure
+
+        return probes_figure(self)
+
+    def export(self, path) -> Path:
+        """ParaView files: `path` (.pvd) and a folder of one VTU file per snapshot."""
+        from jaxmpm.export import export_paraview
+
+        return export_paraview(self, path)
+
     @classmethod
     def load(cls, path) -> Result:
         """Read a file written by `save`."""

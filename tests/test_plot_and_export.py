@@ -48,6 +48,12 @@ def test_export_writes_a_vtu_per_snapshot_that_meshio_reads_back(two_bodies, tmp
     pvd = tmp_path / "two.pvd"
     assert main(["export", str(path), "-o", str(pvd)]) == 0
     assert str(pvd) in capsys.readouterr().out
+    same = result.export(tmp_path / "again.pvd")            # the Python route writes the same data
+    assert same == tmp_path / "again.pvd" and same.is_file()
+    direct, via_file = meshio.read(tmp_path / "again" / "again_00002.vtu"), meshio.read(tmp_path / "two" / "two_00002.vtu")
+    assert sorted(direct.point_data) == sorted(via_file.point_data)
+    for name in direct.point_data:
+        np.testing.assert_array_equal(direct.point_data[name], via_file.point_data[name])
     datasets = ElementTree.parse(pvd).getroot().findall("Collection/DataSet")
     times = result.snapshots["time"]
     assert len(datasets) == len(times) == 3
@@ -81,7 +87,7 @@ def test_points_placed_from_displacement_when_x_is_not_stored():
 
 def test_snapshot_figure_draws_the_stored_points_and_values(two_bodies):
     result, _ = two_bodies
-    figure = plotting.snapshot_figure(result)            # default: the last snapshot, coloured by q
+    figure = result.plot()                                # default: the last snapshot, coloured by q
     points = figure.axes[0].collections[0]
     np.testing.assert_allclose(points.get_offsets(), joined(result, "x", -1), rtol=1e-15)
     np.testing.assert_allclose(points.get_array(), tensors.von_mises(jnp.asarray(joined(result, "stress", -1))), rtol=1e-10)
@@ -97,7 +103,7 @@ def test_cli_writes_png_gif_and_probe_plots(two_bodies, tmp_path):
     assert Image.open(tmp_path / "last.png").size[0] > 100
     assert main(["plot", str(path), "-o", str(tmp_path / "run.gif")]) == 0
     assert Image.open(tmp_path / "run.gif").n_frames == len(result.snapshots["time"])
-    figure = plotting.probes_figure(result)
+    figure = result.plot_probes()
     assert [axes.get_ylabel() for axes in figure.axes] == [f"{name} [m]" for name in result.probes]
     np.testing.assert_allclose(figure.axes[0].lines[1].get_ydata(), result.probes["top"][:, 1])
     assert main(["plot", str(path), "--probes", "-o", str(tmp_path / "probes.png")]) == 0
