@@ -31,7 +31,7 @@ from inverse.observations import Observations, check_against, default_scale
 from inverse.parameters import ParameterSpace
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.files import atomic_path
-from jaxmpm.simulation import describe_failure
+from jaxmpm.simulation import STEP_SLACK, describe_failure
 from jaxmpm.xla_options import jit_reverse_mode
 
 OPTIMIZERS = ("lbfgs", "adam")
@@ -75,8 +75,8 @@ def check_stable_over_bounds(sim, space: ParameterSpace):
                 raise SceneError(f"fit.{entry.path} needs a {extremes[key]} bound: the time step is fixed "
                                  "from the scene, and an unbounded value could make it unstable.")
             values[key] = bound
-        limit = sim.stable_time_step({**sim.params, material_name: values})
-        if sim.dt > limit:
+        limit = sim.material_time_steps({**sim.params, material_name: values}).get(material_name, float("inf"))
+        if sim.dt > limit * (1.0 + STEP_SLACK):
             raise SceneError(
                 f"fit bounds allow material {material_name!r} values that need a time step below "
                 f"{limit:.4g} s, but the scene's is {sim.dt:.4g} s: narrow the bounds or lower scene.cfl."

@@ -53,7 +53,7 @@ def build_parser():
     plot.add_argument("result", help="output HDF5 file of `jaxmpm run`")
     plot.add_argument("-o", "--output", help="PNG, GIF or MP4 file (default: RESULT name with .png)")
     plot.add_argument("--field", help="colour by this field (default q; e.g. p, plastic_strain, displacement, speed)")
-    plot.add_argument("--snapshot", type=int, default=-1, help="snapshot index for a PNG (default -1, the last)")
+    plot.add_argument("--snapshot", type=int, help="snapshot index for a PNG (default -1, the last)")
     plot.add_argument("--probes", action="store_true", help="plot the probe histories instead")
     export = commands.add_parser("export", help="write ParaView files (PVD + VTU) of a run's snapshots")
     export.add_argument("result", help="output HDF5 file of `jaxmpm run`")
@@ -153,17 +153,23 @@ def plot_command(arguments):
     matplotlib.use("Agg")
     from jaxmpm import plotting
 
-    result = read_result(arguments.result)
     output = output_path(arguments.output, arguments.result, ".png")
+    animation = output.suffix.lower() in (".gif", ".mp4")
+    if arguments.probes and arguments.field is not None:
+        raise SceneError(f"--field {arguments.field} colours snapshots; it does not apply to --probes.")
+    if (arguments.probes or animation) and arguments.snapshot is not None:
+        raise SceneError(f"--snapshot {arguments.snapshot} picks the snapshot of a PNG; it does not apply to "
+                         f"{'--probes' if arguments.probes else output.suffix}.")
+    result = read_result(arguments.result)
     if arguments.probes:
         plotting.save_probes(result, output)
-    elif output.suffix.lower() in (".gif", ".mp4"):
+    elif animation:
         plotting.save_animation(result, output, arguments.field)
     else:
-        count = len(result.snapshots["time"])
-        if not -count <= arguments.snapshot < count:
-            raise SceneError(f"--snapshot {arguments.snapshot} is out of range: the file has {count} snapshots.")
-        plotting.save_snapshot(result, output, arguments.field, arguments.snapshot)
+        count, snapshot = len(result.snapshots["time"]), -1 if arguments.snapshot is None else arguments.snapshot
+        if not -count <= snapshot < count:
+            raise SceneError(f"--snapshot {snapshot} is out of range: the file has {count} snapshots.")
+        plotting.save_snapshot(result, output, arguments.field, snapshot)
     print(f"wrote {output}")
     return 0
 

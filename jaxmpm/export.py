@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxmpm.errors import SceneError
 from jaxmpm.files import atomic_path
 from jaxmpm.snapshots import Snapshots
 
@@ -58,6 +59,8 @@ def export_paraview(result, path) -> Path:
     path = Path(path)
     snapshots = Snapshots(result)
     folder = path.with_suffix("")
+    if folder.exists() and not folder.is_dir():
+        raise SceneError(f"-o {str(path)!r}: its VTU folder {str(folder)!r} exists and is not a folder.")
     folder.mkdir(exist_ok=True)
     entries = []
     for index, time in enumerate(snapshots.times):
@@ -65,4 +68,8 @@ def export_paraview(result, path) -> Path:
         write_vtu(file, snapshots.positions(index), point_data(snapshots, index))
         entries.append((time, f"{folder.name}/{file.name}"))
     write_pvd(path, entries)
+    written = {folder / Path(file).name for _, file in entries}
+    for stale in folder.glob(f"{folder.name}_[0-9][0-9][0-9][0-9][0-9].vtu"):   # from an earlier, longer export
+        if stale not in written:
+            stale.unlink()
     return path

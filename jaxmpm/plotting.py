@@ -38,7 +38,7 @@ def pyplot():
 
 
 def default_field(snapshots):
-    scalars = snapshots.scalar_names()
+    scalars = snapshots.names()
     return next(name for name in PREFERRED_FIELDS + tuple(scalars) if name in scalars)
 
 

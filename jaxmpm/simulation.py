@@ -34,6 +34,9 @@ from jaxmpm.solver import BodyBlock, Structure, make_step
 from jaxmpm.state import Particles, counters_at_start
 
 
+STEP_SLACK = 1e-6   # relative round-off allowed between the scene's dt and the stable limit
+
+
 def check_dtype(scene: Scene):
     """float64 scenes need JAX's 64-bit mode, which the library never switches on by itself."""
     if scene.numerics.dtype == "float64" and not jax.config.jax_enable_x64:
@@ -110,28 +113,39 @@ class Simulation:
     def point_count(self) -> int:
         return len(self.seeds.positions)
 
+    def material_time_steps(self, params) -> dict:
+        """{material: h / (c_p + max |v0| of its bodies)} for these parameter values [s]."""
+        limits = {}
+        for body in self.scene.bodies:
+            speed = float(self.scene.material_of(body).wave_speed(params[body.material])) + math.hypot(*body.velocity)
+            limit = self.scene.grid.cell / speed
+            limits[body.material] = min(limit, limits.get(body.material, limit))
+        return limits
+
     def stable_time_step(self, params) -> float:
         """h / max over bodies of (c_p + |v0|) for these parameter values [s] (the scene's own
         values give `scene.stable_dt`)."""
-        speeds = [
-            float(self.scene.material_of(body).wave_speed(params[body.material])) + math.hypot(*body.velocity)
-            for body in self.scene.bodies
-        ]
-        return self.scene.grid.cell / max(speeds)
+        return min(self.material_time_steps(params).values())
 
     def check_time_step(self, params):
         """SceneError if concrete parameter values make the fixed time step unstable. Traced
         values (inside jit, grad, vmap) cannot be checked here: there an unstable step shows up
-        as a non-finite state (error bits, SimulationError in `run`)."""
+        as a non-finite state (error bits, SimulationError in `run`). A relative slack of
+        STEP_SLACK absorbs round-off (float32 parameters, the rounding of dt to whole steps)."""
         if not all(is_concrete(leaf) for leaf in jax.tree_util.tree_leaves(params)):
             return
-        limit = self.stable_time_step(params)
-        if self.dt > limit:
-            raise SceneError(
-                f"these params need a time step below {limit:.4g} s, but the one fixed from the scene is "
-                f"{self.dt:.4g} s: build the Simulation from a scene holding the new values "
-                f"(scene.with_value) or lower scene.cfl."
-            )
+        for material, limit in self.material_time_steps(params).items():
+            if self.dt > limit * (1.0 + STEP_SLACK):
+                changed = {
+                    key: float(value) for key, value in params[material].items()
+                    if float(value) != float(self.params[material][key])
+                }
+                values = ", ".join(f"{key} = {value:g}" for key, value in changed.items()) or "the scene's values"
+                raise SceneError(
+                    f"params[{material!r}] ({values}) need a time step below {limit:.4g} s, but the one fixed "
+                    f"from the scene is {self.dt:.4g} s: build the Simulation from a scene holding these "
+                    f"values (scene.with_value) or lower scene.cfl."
+                )
 
     def cast(self, params):
         """Parameters as arrays of the scene's dtype (so values of any kind never retrace)."""

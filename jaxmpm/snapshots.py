@@ -57,17 +57,19 @@ class Snapshots:
         )
 
     def names(self):
-        """Every field name `field` accepts for this file."""
-        names = [name for name in self.stored if name != "x"]
-        names += [name for name, source in DERIVED.items() if source in self.stored]
-        if "x" in self.stored and "displacement" not in self.stored:
-            names.append("displacement")
-        return sorted(set(names) | {"body"})
+        """Every scalar field (one number per point) this file can give: what a plot colours
+        by. Vector and tensor fields enter through their scalars (speed, |u|, p, q, ...)."""
+        scalars = [name for name in ("plastic_strain", "volume", "mass") if name in self.stored]
+        scalars += [name for name, source in DERIVED.items() if source in self.stored]
+        if "displacement" in self.stored or "x" in self.stored:
+            scalars.append("displacement")
+        return sorted(set(scalars) | {"body"})
 
     def field(self, name, index):
-        """Field `name` at snapshot `index`, all bodies joined: (N,) for scalars."""
+        """Scalar field `name` at snapshot `index`, all bodies joined: (N,)."""
         if name not in self.names():
-            raise SceneError(f"field {name!r} is not in this output file; choose one of {', '.join(self.names())}.")
+            raise SceneError(f"field {name!r} cannot colour the points of this output file; "
+                             f"choose one of {', '.join(self.names())}.")
         if name == "body":
             return self.body_number
         if name == "displacement":
@@ -79,10 +81,6 @@ class Snapshots:
         if name in DERIVED:
             return stress_scalar(name, self.stored_field("stress", index))
         return self.stored_field(name, index)
-
-    def scalar_names(self):
-        """The fields that are one number per point (what a plot can colour by)."""
-        return [name for name in self.names() if self.field(name, 0).ndim == 1]
 
 
 def stress_scalar(name, stress):

@@ -118,6 +118,11 @@ def test_cli_writes_png_gif_and_probe_plots(two_bodies, tmp_path):
         (["plot", "{not_hdf5}"], ["not an HDF5 file"]),
         (["export", "{not_jaxmpm}"], ["not a jaxmpm output file"]),
         (["plot", "{run}", "--field", "porosity"], ["field 'porosity'", "choose one of"]),
+        (["plot", "{run}", "--field", "v"], ["field 'v'", "speed"]),
+        (["plot", "{run}", "--field", "stress"], ["field 'stress'", "sigma_xx"]),
+        (["plot", "{run}", "--probes", "--field", "q"], ["--field q", "--probes"]),
+        (["plot", "{run}", "-o", "{tmp}/run.gif", "--snapshot", "1"], ["--snapshot 1", ".gif"]),
+        (["export", "{run}", "-o", "{tmp}/clash.pvd"], ["clash", "not a folder"]),
         (["plot", "{run}", "--snapshot", "7"], ["--snapshot 7", "3 snapshots"]),
         (["plot", "{run}", "-o", "{tmp}/picture.jpg"], ["picture.jpg", ".png"]),
         (["export", "{run}", "-o", "{tmp}/out.vtk"], ["out.vtk", ".pvd"]),
@@ -127,6 +132,7 @@ def test_plot_and_export_user_errors_exit_2_with_one_line(two_bodies, tmp_path, 
     import h5py
 
     (tmp_path / "notes.h5").write_text("not hdf5")
+    (tmp_path / "clash").write_text("a file where the VTU folder would go")
     with h5py.File(tmp_path / "other.h5", "w") as file:
         file["data"] = np.zeros(3)
     names = {"missing": tmp_path / "missing.h5", "not_hdf5": tmp_path / "notes.h5",
@@ -136,3 +142,13 @@ def test_plot_and_export_user_errors_exit_2_with_one_line(two_bodies, tmp_path, 
     assert len(error.splitlines()) == 1 and "Traceback" not in error
     for word in words:
         assert word in error
+
+
+def test_export_again_replaces_its_own_files_and_leaves_others(two_bodies, tmp_path):
+    result, _ = two_bodies
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / "run_00007.vtu").write_text("left by an earlier, longer export")
+    (folder / "notes.txt").write_text("the user's")
+    result.export(tmp_path / "run.pvd")
+    assert sorted(p.name for p in folder.iterdir()) == ["notes.txt", "run_00000.vtu", "run_00001.vtu", "run_00002.vtu"]
