@@ -113,37 +113,48 @@ class Simulation:
     def point_count(self) -> int:
         return len(self.seeds.positions)
 
-    def material_time_steps(self, params) -> dict:
-        """{material: h / (c_p + max |v0| of its bodies)} for these parameter values [s]."""
+    def material_time_steps(self, params, initial: Particles | None = None) -> dict:
+        """{material: h / (c_p + max speed of its bodies)} for these parameter values [s]; the
+        speed is each body's scene velocity, or the largest |v| of its points in `initial`."""
         limits = {}
-        for body in self.scene.bodies:
-            speed = float(self.scene.material_of(body).wave_speed(params[body.material])) + math.hypot(*body.velocity)
+        for block, body in zip(self.structure.bodies, self.scene.bodies):
+            if initial is None:
+                motion = math.hypot(*body.velocity)
+            else:
+                velocity = np.asarray(initial.v[block.start : block.stop])
+                motion = float(np.max(np.hypot(velocity[:, 0], velocity[:, 1])))
+            speed = float(self.scene.material_of(body).wave_speed(params[body.material])) + motion
             limit = self.scene.grid.cell / speed
             limits[body.material] = min(limit, limits.get(body.material, limit))
         return limits
 
-    def stable_time_step(self, params) -> float:
-        """h / max over bodies of (c_p + |v0|) for these parameter values [s] (the scene's own
-        values give `scene.stable_dt`)."""
-        return min(self.material_time_steps(params).values())
+    def stable_time_step(self, params, initial: Particles | None = None) -> float:
+        """h / max over bodies of (c_p + |v|) for these parameter values (and initial state) [s];
+        the scene's own values give `scene.stable_dt`."""
+        return min(self.material_time_steps(params, initial).values())
 
-    def check_time_step(self, params):
-        """SceneError if concrete parameter values make the fixed time step unstable. Traced
-        values (inside jit, grad, vmap) cannot be checked here: there an unstable step shows up
-        as a non-finite state (error bits, SimulationError in `run`). A relative slack of
-        STEP_SLACK absorbs round-off (float32 parameters, the rounding of dt to whole steps)."""
-        if not all(is_concrete(leaf) for leaf in jax.tree_util.tree_leaves(params)):
+    def check_time_step(self, params, initial: Particles | None = None):
+        """SceneError if concrete parameter values (or initial velocities) make the fixed time
+        step unstable. Traced values (inside jit, grad, vmap) cannot be checked here: there an
+        unstable step shows up as a non-finite state (error bits, SimulationError in `run`). A
+        relative slack of STEP_SLACK absorbs round-off (float32 parameters, the rounding of dt
+        to whole steps)."""
+        leaves = jax.tree_util.tree_leaves(params) + ([] if initial is None else [initial.v])
+        if not all(is_concrete(leaf) for leaf in leaves):
             return
-        for material, limit in self.material_time_steps(params).items():
+        for material, limit in self.material_time_steps(params, initial).items():
             if self.dt > limit * (1.0 + STEP_SLACK):
                 changed = {
                     key: float(value) for key, value in params[material].items()
                     if float(value) != float(self.params[material][key])
                 }
                 values = ", ".join(f"{key} = {value:g}" for key, value in changed.items()) or "the scene's values"
+                moving = "" if initial is None else (
+                    f" with the initial velocities (up to {float(np.max(np.abs(np.asarray(initial.v)))):.4g} m/s)"
+                )
                 raise SceneError(
-                    f"params[{material!r}] ({values}) need a time step below {limit:.4g} s, but the one fixed "
-                    f"from the scene is {self.dt:.4g} s: build the Simulation from a scene holding these "
+                    f"params[{material!r}] ({values}){moving} need a time step below {limit:.4g} s, but the one "
+                    f"fixed from the scene is {self.dt:.4g} s: build the Simulation from a scene holding these "
                     f"values (scene.with_value) or lower scene.cfl."
                 )
 
@@ -209,14 +220,14 @@ class Simulation:
         (default `self.params`) and an optional initial state (default `initial_state(params)`).
         Differentiable with respect to params and to the initial state."""
         params = self.cast(self.params if params is None else params)
-        self.check_time_step(params)
+        self.check_time_step(params, initial)
         initial = self.initial_state(params) if initial is None else initial
         return self._probes(params, initial)[0]
 
     def final_state(self, params=None, initial: Particles | None = None) -> Particles:
         """The state after the last step (differentiable, like `probes`)."""
         params = self.cast(self.params if params is None else params)
-        self.check_time_step(params)
+        self.check_time_step(params, initial)
         initial = self.initial_state(params) if initial is None else initial
         return self._probes(params, initial)[1]
 
@@ -231,7 +242,7 @@ class Simulation:
         from tqdm.auto import tqdm
 
         params = self.cast(self.params if params is None else params)
-        self.check_time_step(params)
+        self.check_time_step(params, initial)
         particles = self.initial_state(params) if initial is None else initial
         particles = particles.replace(**counters_at_start())
         initial_x = particles.x

@@ -125,6 +125,12 @@ def test_parameters_that_make_the_fixed_time_step_unstable_are_refused():
     for call in (sim.probes, sim.final_state, lambda p: sim.run(p, progress=False)):
         with pytest.raises(SceneError, match=r"params\['soil'\] \(young = 1e\+08\) need a time step below .* fixed"):
             call(stiff)
+    # Initial velocities set through `initial=` count like a body's scene velocity: c_p + |v|.
+    state = sim.initial_state()
+    fast = state.replace(v=state.v.at[3, 0].set(10.0 * sim.scene.max_wave_speed))
+    with pytest.raises(SceneError, match=r"initial velocities \(up to .* m/s\) need a time step below"):
+        sim.probes(initial=fast)
+    assert sim.probes(initial=state.replace(v=state.v.at[3, 0].set(0.1)))["top"].shape == (sim.steps + 1, 2)
     soft = {"soil": dict(sim.params["soil"], young=0.5 * sim.params["soil"]["young"])}
     assert sim.probes(soft)["top"].shape == (sim.steps + 1, 2)
     gradient = jax.grad(lambda young: sim.probes({"soil": dict(sim.params["soil"], young=young)})["top"][-1, 1])
