@@ -125,6 +125,20 @@ def boundary_mask(layout, boundaries, dtype):
     return jnp.asarray(mask, dtype)
 
 
+def ghost_mirror_pairs(layout, boundaries, shape):
+    """(kind, axis, ghost, mirror) for every ghost node layer beyond a fixed or slip edge:
+    ghost and mirror are indices along `axis` of a node array of `shape`, at equal distances
+    outside and inside the edge node."""
+    for edge, (axis, side) in EDGES.items():
+        kind = getattr(boundaries, edge)
+        if kind == "free":
+            continue
+        edge_node = layout.ghost if side == 0 else shape[axis] - 1 - layout.ghost
+        outwards = -1 if side == 0 else 1
+        for layer in range(1, layout.ghost + 1):
+            yield kind, axis, edge_node + outwards * layer, edge_node - outwards * layer
+
+
 def mirror_signs(kind, axis):
     """Sign of each velocity component in the mirror image across an edge: -1 held, +1 free."""
     return [-1.0 if kind == "fixed" or component == axis else 1.0 for component in (0, 1)]
@@ -141,20 +155,11 @@ def fold_ghosts(nodes, layout, boundaries, scalars=1):
     """
     if not layout.ghost:
         return nodes
-    for edge, (axis, side) in EDGES.items():
-        kind = getattr(boundaries, edge)
-        if kind == "free":
-            continue
+    for kind, axis, ghost, mirror in ghost_mirror_pairs(layout, boundaries, nodes.shape):
         signs = [1.0] * scalars + mirror_signs(kind, axis) * ((nodes.shape[-1] - scalars) // 2)
-        signs = jnp.asarray(signs, nodes.dtype)
-        count = nodes.shape[axis]
-        edge_node = layout.ghost if side == 0 else count - 1 - layout.ghost
-        step = -1 if side == 0 else 1
-        for layer in range(1, layout.ghost + 1):
-            ghost, mirror = edge_node + step * layer, edge_node - step * layer
-            selector = [slice(None), slice(None)]
-            selector[axis] = mirror
-            nodes = nodes.at[tuple(selector)].add(signs * jnp.take(nodes, ghost, axis=axis))
+        selector = [slice(None), slice(None)]
+        selector[axis] = mirror
+        nodes = nodes.at[tuple(selector)].add(jnp.asarray(signs, nodes.dtype) * jnp.take(nodes, ghost, axis=axis))
     return nodes
 
 
@@ -169,19 +174,9 @@ def apply_edge_conditions(velocity, mask, layout, boundaries):
     Beyond a free edge, ghost nodes are ordinary nodes.
     """
     velocity = velocity * mask
-    for edge, (axis, side) in EDGES.items():
-        kind = getattr(boundaries, edge)
-        if kind == "free":
-            continue
-        count = velocity.shape[axis]
-        edge_node = layout.ghost if side == 0 else count - 1 - layout.ghost
-        step = -1 if side == 0 else 1                    # from the edge outwards
-        for layer in range(1, layout.ghost + 1):
-            ghost, mirror = edge_node + step * layer, edge_node - step * layer
-            for component in (0, 1):
-                held = kind == "fixed" or component == axis
-                inside = jnp.take(velocity[..., component], mirror, axis=axis)
-                selector = [slice(None), slice(None), component]
-                selector[axis] = ghost
-                velocity = velocity.at[tuple(selector)].set(-inside if held else inside)
+    for kind, axis, ghost, mirror in ghost_mirror_pairs(layout, boundaries, velocity.shape):
+        for component, sign in enumerate(mirror_signs(kind, axis)):
+            selector = [slice(None), slice(None), component]
+            selector[axis] = ghost
+            velocity = velocity.at[tuple(selector)].set(sign * jnp.take(velocity[..., component], mirror, axis=axis))
     return velocity

@@ -94,14 +94,19 @@ def snapshot_figure(result, field=None, snapshot=-1):
     return figure
 
 
-def save_snapshot(result, path, field=None, snapshot=-1):
-    """PNG of one snapshot, written atomically."""
+def save_png(figure, path):
+    """Write a figure as PNG atomically, then close it."""
     check_output(path, (".png",))
-    figure = snapshot_figure(result, field, snapshot)
     with atomic_path(path) as temporary:
         figure.savefig(temporary, dpi=120, format="png")
     pyplot().close(figure)
     return Path(path)
+
+
+def save_snapshot(result, path, field=None, snapshot=-1):
+    """PNG of one snapshot, written atomically."""
+    check_output(path, (".png",))
+    return save_png(snapshot_figure(result, field, snapshot), path)
 
 
 def save_animation(result, path, field=None, fps=10):
@@ -156,9 +161,6 @@ def probes_figure(result):
 
 
 def save_probes(result, path):
+    """PNG of the probe histories, written atomically."""
     check_output(path, (".png",))
-    figure = probes_figure(result)
-    with atomic_path(path) as temporary:
-        figure.savefig(temporary, dpi=120, format="png")
-    pyplot().close(figure)
-    return Path(path)
+    return save_png(probes_figure(result), path)

@@ -13,6 +13,8 @@ its body number. Besides the stored fields (`x`, `v`, `displacement`, `stress`,
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from jaxmpm.errors import SceneError
@@ -35,6 +37,13 @@ class Snapshots:
         counts = [per_body.shape[1] for per_body in self.stored[fields[0]]] if fields else []
         self.body_number = np.repeat(np.arange(len(counts)), counts)
 
+    @functools.cached_property
+    def seeded_positions(self):
+        """(N, 2) initial point positions, seeded again from the scene (done once)."""
+        from jaxmpm.seeding import seed_bodies
+
+        return seed_bodies(self.scene).positions
+
     def __len__(self):
         return len(self.times)
 
@@ -48,9 +57,7 @@ class Snapshots:
         if "x" in self.stored:
             return self.stored_field("x", index)
         if "displacement" in self.stored:
-            from jaxmpm.seeding import seed_bodies
-
-            return seed_bodies(self.scene).positions + self.stored_field("displacement", index)
+            return self.seeded_positions + self.stored_field("displacement", index)
         raise SceneError(
             "the output file holds neither 'x' nor 'displacement' snapshots, so the points cannot "
             "be placed: add one of them to scene.snapshot_fields."
