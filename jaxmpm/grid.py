@@ -1,6 +1,8 @@
 """The background grid: moving stencil values between points and nodes, and edge conditions.
 
-Nodes form an (nx + 1, ny + 1) array. Particle-to-grid is ONE scatter: each point adds a row
+Nodes form an (nx + 1, ny + 1) array, one per velocity field: node arrays are
+(fields, nx + 1, ny + 1, channels), and each point talks to its own body's field only (a scene
+without contact pairs has one field). Particle-to-grid is ONE scatter: each point adds a row
 holding all its s x s nodes' values side by side, keyed by its base node; the rows are then
 spread to the nodes with s x s shifted adds. This was ~2.5x faster on CPU than s^2 N separate
 scatter rows (../PERFORMANCE notes, measured again in benchmarks/).
@@ -68,36 +70,44 @@ class GridLayout:
         return jnp.any((local < 0.0) | (local > jnp.asarray(self.cells, local.dtype)), axis=1)
 
 
-def scatter_to_nodes(layout, base, values):
-    """Sum stencil values (N, s, s, C) into node arrays (nx + 1, ny + 1, C)."""
-    count, support, _, channels = values.shape
+def node_keys(layout, base, field=None):
+    """Row of each point's base node in a flattened (fields, nx, ny) node array: (N,) int32.
+    `field` (N,) is each point's velocity field (None: all in field 0)."""
     nx, ny = layout.nodes
     keys = base[:, 0] * ny + base[:, 1]
-    rows = jnp.zeros((nx * ny, support * support * channels), values.dtype)
-    rows = rows.at[keys].add(values.reshape(count, -1))
-    rows = rows.reshape(nx, ny, support, support, channels)
+    return keys if field is None else keys + field * (nx * ny)
+
+
+def scatter_to_nodes(layout, base, values, field=None, fields=1):
+    """Sum stencil values (N, s, s, C) into node arrays (fields, nx, ny, C), each point into
+    its own velocity field `field` (N,) (None: one field)."""
+    count, support, _, channels = values.shape
+    nx, ny = layout.nodes
+    rows = jnp.zeros((fields * nx * ny, support * support * channels), values.dtype)
+    rows = rows.at[node_keys(layout, base, field)].add(values.reshape(count, -1))
+    rows = rows.reshape(fields, nx, ny, support, support, channels)
     # A base node is at most nx - s, so the shifted copies never wrap around.
     return sum(
-        jnp.roll(rows[:, :, a, b], (a, b), axis=(0, 1))
+        jnp.roll(rows[:, :, :, a, b], (a, b), axis=(1, 2))
         for a in range(support)
         for b in range(support)
     )
 
 
-def gather_from_nodes(base, nodes, support):
-    """Node values (nx + 1, ny + 1, C) at each point's s x s stencil: (N, s, s, C).
+def gather_from_nodes(layout, base, nodes, support, field=None):
+    """Node values (fields, nx, ny, C) at each point's s x s stencil in its own field: (N, s, s, C).
 
     The mirror of `scatter_to_nodes`: every node first holds its s x s neighbours' values side
     by side (s^2 shifted copies of the small node array), then each point reads ONE contiguous
     row at its base node, instead of s^2 scattered reads.
     """
-    nx, ny, channels = nodes.shape
+    fields, nx, ny, channels = nodes.shape
     # A base node is at most nx - s, so the wrapped-around part of each shift is never read.
     neighbours = jnp.stack(
-        [jnp.roll(nodes, (-a, -b), axis=(0, 1)) for a in range(support) for b in range(support)], axis=2
+        [jnp.roll(nodes, (-a, -b), axis=(1, 2)) for a in range(support) for b in range(support)], axis=3
     )
-    rows = neighbours.reshape(nx * ny, support * support * channels)
-    return rows[base[:, 0] * ny + base[:, 1]].reshape(len(base), support, support, channels)
+    rows = neighbours.reshape(fields * nx * ny, support * support * channels)
+    return rows[node_keys(layout, base, field)].reshape(len(base), support, support, channels)
 
 
 def sum_over_stencil(values):
@@ -125,15 +135,15 @@ def boundary_mask(layout, boundaries, dtype):
     return jnp.asarray(mask, dtype)
 
 
-def ghost_mirror_pairs(layout, boundaries, shape):
+def ghost_mirror_pairs(layout, boundaries):
     """(kind, axis, ghost, mirror) for every ghost node layer beyond a fixed or slip edge:
-    ghost and mirror are indices along `axis` of a node array of `shape`, at equal distances
-    outside and inside the edge node."""
+    ghost and mirror are indices along grid `axis` (0: x, 1: y) of the node arrays, at equal
+    distances outside and inside the edge node."""
     for edge, (axis, side) in EDGES.items():
         kind = getattr(boundaries, edge)
         if kind == "free":
             continue
-        edge_node = layout.ghost if side == 0 else shape[axis] - 1 - layout.ghost
+        edge_node = layout.ghost if side == 0 else layout.nodes[axis] - 1 - layout.ghost
         outwards = -1 if side == 0 else 1
         for layer in range(1, layout.ghost + 1):
             yield kind, axis, edge_node + outwards * layer, edge_node - outwards * layer
@@ -149,22 +159,29 @@ def fold_ghosts(nodes, layout, boundaries, scalars=1):
     nodes inside, as if every point had a mirror image across the wall (mass with +, momentum
     and force components with the mirror signs).
 
-    nodes: (nodes_x, nodes_y, scalars + 2 k): `scalars` scalar channels (mass), then k (x, y)
-    pairs (momentum, force). Without this, the lumped projection of a field is biased next to
-    the wall, where the support of the nodes is only partly filled with material.
+    nodes: (fields, nodes_x, nodes_y, scalars + 2 k): `scalars` scalar channels (mass), then k
+    (x, y) pairs (momentum, force). Without this, the lumped projection of a field is biased
+    next to the wall, where the support of the nodes is only partly filled with material.
     """
     if not layout.ghost:
         return nodes
-    for kind, axis, ghost, mirror in ghost_mirror_pairs(layout, boundaries, nodes.shape):
+    for kind, axis, ghost, mirror in ghost_mirror_pairs(layout, boundaries):
         signs = [1.0] * scalars + mirror_signs(kind, axis) * ((nodes.shape[-1] - scalars) // 2)
-        selector = [slice(None), slice(None)]
-        selector[axis] = mirror
-        nodes = nodes.at[tuple(selector)].add(jnp.asarray(signs, nodes.dtype) * jnp.take(nodes, ghost, axis=axis))
+        nodes = nodes.at[node_selector(axis, mirror)].add(
+            jnp.asarray(signs, nodes.dtype) * jnp.take(nodes, ghost, axis=axis - 3)
+        )
     return nodes
 
 
+def node_selector(axis, index, component=slice(None)):
+    """Index of the node layer `index` along grid `axis` (0: x, 1: y) of (..., nx, ny, C) arrays."""
+    selector = [slice(None), slice(None), component]
+    selector[axis] = index
+    return (Ellipsis, *selector)
+
+
 def apply_edge_conditions(velocity, mask, layout, boundaries):
-    """Nodal velocities (nodes_x, nodes_y, 2) with the edge conditions applied.
+    """Nodal velocities (..., nodes_x, nodes_y, 2) with the edge conditions applied.
 
     Edge nodes: the constrained components are zeroed (`boundary_mask`). Ghost nodes beyond a
     fixed or slip edge mirror the nodes inside: odd for a held component (so the field through
@@ -174,9 +191,9 @@ def apply_edge_conditions(velocity, mask, layout, boundaries):
     Beyond a free edge, ghost nodes are ordinary nodes.
     """
     velocity = velocity * mask
-    for kind, axis, ghost, mirror in ghost_mirror_pairs(layout, boundaries, velocity.shape):
+    for kind, axis, ghost, mirror in ghost_mirror_pairs(layout, boundaries):
         for component, sign in enumerate(mirror_signs(kind, axis)):
-            selector = [slice(None), slice(None), component]
-            selector[axis] = ghost
-            velocity = velocity.at[tuple(selector)].set(sign * jnp.take(velocity[..., component], mirror, axis=axis))
+            velocity = velocity.at[node_selector(axis, ghost, component)].set(
+                sign * jnp.take(velocity[..., component], mirror, axis=axis - 2)
+            )
     return velocity

@@ -1,7 +1,15 @@
-"""Probes: quantities recorded at every step, as functions of the state (SPEC section 8).
+"""Probes: quantities recorded at every step, read from the state and the step's diagnostics.
 
 `make_probes(scene, seeds)` resolves each probe's target once, at setup (the nearest point,
-the body's slice), and returns observe(particles, initial_x) -> {name: (k,) array}.
+the body's slice, the contact pair), and returns
+observe(state, diagnostics, initial_x) -> {name: (k,) array}. Every probe is differentiable.
+
+    displacement       (2,) of the point nearest `at` at t = 0 [m]
+    body_displacement  (2,) mass-weighted mean displacement of a body [m]
+    body_rotation      (1,) best-fit rotation of a body about its centre of mass [rad]
+    contact_force      (2,) force of the pair's first body on its second through their
+                       contact, in the step that ended at this time [N per m of thickness]
+    reaction           (2,) force that kept a prescribed body on its path in that step [N/m]
 """
 
 import numpy as np
@@ -16,8 +24,14 @@ def nearest_point(seeds, at):
 def make_probes(scene, seeds):
     readers = {}
     body_slices = {body.name: seeds.slices[index] for index, body in enumerate(scene.bodies)}
+    declared = {frozenset(contact.pair): contact for contact in scene.contacts}
     for probe in scene.probes:
-        if probe.kind == "displacement":
+        if probe.kind == "contact_force":
+            contact = declared[frozenset(probe.pair)]
+            readers[probe.name] = _contact_force(contact.name, 1.0 if tuple(probe.pair) == contact.pair else -1.0)
+        elif probe.kind == "reaction":
+            readers[probe.name] = _reaction(probe.body)
+        elif probe.kind == "displacement":
             readers[probe.name] = _point_displacement(nearest_point(seeds, probe.at))
         elif probe.kind == "body_displacement":
             readers[probe.name] = _body_displacement(*body_slices[probe.body])
@@ -26,21 +40,36 @@ def make_probes(scene, seeds):
         else:
             raise AssertionError(probe.kind)
 
-    def observe(particles, initial_x):
-        return {name: read(particles, initial_x) for name, read in readers.items()}
+    def observe(state, diagnostics, initial_x):
+        return {name: read(state, diagnostics, initial_x) for name, read in readers.items()}
 
     return observe
 
 
+def _contact_force(pair, sign):
+    def read(state, diagnostics, initial_x):
+        return sign * diagnostics.contact_force[pair]
+
+    return read
+
+
+def _reaction(body):
+    def read(state, diagnostics, initial_x):
+        return diagnostics.reaction[body]
+
+    return read
+
+
 def _point_displacement(index):
-    def read(particles, initial_x):
-        return particles.x[index] - initial_x[index]
+    def read(state, diagnostics, initial_x):
+        return state.particles.x[index] - initial_x[index]
 
     return read
 
 
 def _body_displacement(start, stop):
-    def read(particles, initial_x):
+    def read(state, diagnostics, initial_x):
+        particles = state.particles
         mass = particles.mass[start:stop]
         moved = particles.x[start:stop] - initial_x[start:stop]
         # A dot, not jnp.sum(mass[:, None] * moved, axis=0): XLA:CPU runs that reduction slowly.
@@ -54,7 +83,8 @@ def _body_rotation(start, stop):
     (least squares, mass-weighted, about the centres of mass): atan2(sum m r0 x r, sum m r0 . r),
     counter-clockwise positive [rad], in (-pi, pi]."""
 
-    def read(particles, initial_x):
+    def read(state, diagnostics, initial_x):
+        particles = state.particles
         mass = particles.mass[start:stop]
         weights = mass / jnp.sum(mass)
         now = particles.x[start:stop] - jnp.dot(weights, particles.x[start:stop])

@@ -26,12 +26,12 @@ BOUNDARY_KINDS = ("fixed", "slip", "free")
 NUMERICS_CHOICES = {"shape": ("linear", "gimp", "bspline2"), "transfer": ("flip", "apic"),
                     "dtype": ("float64", "float32"), "update": ("musl", "usl")}
 SNAPSHOT_FIELDS = ("x", "v", "displacement", "stress", "plastic_strain", "volume", "mass")
-PROBE_KINDS = ("displacement", "body_displacement", "body_rotation")
+PROBE_KINDS = ("displacement", "body_displacement", "body_rotation", "contact_force", "reaction")
+KINEMATICS = ("free", "prescribed", "rigid")
 NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")   # bodies, materials, probes: safe in HDF5 paths and --set
 # Keys the SPEC names whose physics is not built yet: rejected with a clear message, not ignored.
 NOT_YET = {
     "geometry": ("axisymmetric",),
-    "kind": ("contact_force", "reaction"),
 }
 
 
@@ -109,16 +109,59 @@ class Geostatic:
 
 
 @dataclasses.dataclass(frozen=True)
+class Kinematics:
+    """How a body moves.
+
+    free        deformable: its material's stress update, moved by the grid (the default);
+    prescribed  moved at a given velocity [m/s], no stress update: `velocity` = (vx, vy), or
+                one (vx, vy) per entry of `time` [s] (strictly increasing from 0), linear in
+                between and held after the last; the velocity is a parameter
+                (params["bodies"][name]["velocity"]);
+    rigid       moves as one body (translation and rotation) under gravity and the forces of
+                the bodies around it, no stress update.
+    Prescribed and rigid bodies never set the time step: their stiffness plays no part.
+    """
+
+    type: str = "free"
+    velocity: tuple | None = None
+    time: tuple[float, ...] | None = None
+
+    @property
+    def top_speed(self) -> float:
+        """The largest prescribed speed [m/s] (0 for free and rigid bodies)."""
+        if self.type != "prescribed":
+            return 0.0
+        rows = [self.velocity] if self.time is None else self.velocity
+        return max(math.hypot(*row) for row in rows)
+
+
+@dataclasses.dataclass(frozen=True)
 class Body:
-    """A region filled with material points of one material, at rest or moving at `velocity`
-    [m/s], with zero initial stress or a `Geostatic` one."""
+    """A region filled with material points of one material, with its `kinematics`, its
+    initial `velocity` [m/s] (free and rigid bodies) and zero initial stress or a `Geostatic`
+    one."""
 
     name: str
     material: str
     region: Rectangle | Polygon
     velocity: tuple[float, float] = (0.0, 0.0)
-    kinematics: str = "free"
+    kinematics: Kinematics = Kinematics()
     initial_stress: Geostatic | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Contact:
+    """Frictional contact between two bodies (Bardenhagen et al. 2001): each gets its own
+    velocity field; they may not interpenetrate, may separate, and slide with Coulomb friction
+    `friction` (mu >= 0, a parameter: params["contacts"]["first/second"]["friction"])."""
+
+    pair: tuple[str, str]
+    friction: float = 0.0
+
+    @property
+    def name(self) -> str:
+        """'first/second', the pair's key in params["contacts"]."""
+        return "/".join(self.pair)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,12 +169,15 @@ class Probe:
     """A recorded history. `displacement`: of the point nearest `at` at t = 0 (k = 2);
     `body_displacement`: mass-weighted mean displacement of `body` (k = 2);
     `body_rotation`: rotation of `body` about its centre of mass, counter-clockwise positive
-    [rad] (k = 1)."""
+    [rad] (k = 1); `contact_force`: the force the first body of `pair` exerts on the second
+    through their contact [N per m of thickness] (k = 2); `reaction`: the force that keeps the
+    prescribed `body` on its path (what the driver applies) [N/m] (k = 2)."""
 
     name: str
     kind: str
     at: tuple[float, float] | None = None
     body: str | None = None
+    pair: tuple[str, str] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,6 +197,7 @@ class Scene:
     snapshot_fields: tuple[str, ...] = ("x", "stress", "plastic_strain")
     numerics: Numerics = Numerics()
     probes: tuple[Probe, ...] = ()
+    contacts: tuple[Contact, ...] = ()
 
     def __post_init__(self):
         check_scene(self)
@@ -176,17 +223,32 @@ class Scene:
         return tomli_w.dumps(self.to_dict())
 
     def with_value(self, key: str, value) -> Scene:
-        """A copy with one value replaced; `key` is a dotted path such as "sand.young",
-        "materials.sand.young", "grid.cell", "scene.duration" or "numerics.ppc"."""
+        """A copy with one value replaced. `key` is a dotted path: a parameter name
+        ("sand.young", "materials.sand.young", "contacts.backfill/wall.friction",
+        "bodies.pile.velocity": a prescribed body's velocity), or a scene value ("grid.cell",
+        "scene.duration", "numerics.ppc", "bodies.block.velocity": a free body's initial
+        velocity)."""
+        from jaxmpm.parameters import qualify
+
         data = self.to_dict()
+        owners = {"materials": tuple(self.materials), "contacts": tuple(c.name for c in self.contacts),
+                  "bodies": tuple(body.name for body in self.bodies)}
+        head = key.partition(".")[0]
+        if head not in data and head not in ("scene", "grid", "numerics", "probes"):
+            key = qualify(key, owners)
         parts = key.split(".")
-        if parts[0] in self.materials:
-            parts = ["materials", *parts]
-        if parts[0] in ("bodies", "probes") and len(parts) > 2:
+        if parts[0] == "contacts" and len(parts) == 3:
+            if parts[1] not in owners["contacts"]:
+                raise SceneError(f"--set {key}: there is no contact pair {parts[1]!r} (pairs: {', '.join(owners['contacts']) or 'none'}).")
+            parts[1] = owners["contacts"].index(parts[1])
+        elif parts[0] in ("bodies", "probes") and len(parts) > 2:
             names = [entry["name"] for entry in data[parts[0]]]
             if parts[1] not in names:
                 raise SceneError(f"--set {key}: there is no {parts[0][:-1]} named {parts[1]!r}.")
             parts[1] = names.index(parts[1])
+            entry = data[parts[0]][parts[1]]
+            if parts[0] == "bodies" and parts[2:] == ["velocity"] and entry["kinematics"]["type"] == "prescribed":
+                parts[2:] = ["kinematics", "velocity"]
         table = data
         for part in parts[:-1]:
             if isinstance(part, int):
@@ -205,24 +267,39 @@ class Scene:
     def material_of(self, body: Body):
         return self.materials[body.material]
 
+    def body_named(self, name: str) -> Body:
+        return next(body for body in self.bodies if body.name == name)
+
     @property
     def max_wave_speed(self) -> float:
-        """max over deformable bodies of c_p + |v0| [m/s] (the CFL denominator)."""
-        speeds = [
-            float(self.material_of(body).wave_speed(material_parameters(self.material_of(body))))
-            + math.hypot(*body.velocity)
-            for body in self.bodies
-        ]
+        """The CFL denominator [m/s]: max over free bodies of c_p + |v0|, and over prescribed
+        and rigid bodies of their speed alone (their stiffness never sets the step)."""
+        speeds = [body_speed(self, body) for body in self.bodies]
         return max(speeds)
 
     @property
     def stable_dt(self) -> float:
         """The stability limit h / max(c_p + |v|) [s]; the scene runs at cfl times this."""
-        return self.grid.cell / self.max_wave_speed
+        speed = self.max_wave_speed
+        return self.grid.cell / speed if speed > 0.0 else math.inf
 
     @property
     def output_interval(self) -> float:
         return self.output_every if self.output_every is not None else self.duration / 100.0
+
+
+def body_speed(scene: Scene, body: Body, params=None, initial_speed=None) -> float:
+    """The speed that limits the time step for one body [m/s]: c_p (from `params` of its
+    material, default the scene's values) + its initial speed for a free body; its initial or
+    prescribed speed alone for a rigid or prescribed one."""
+    motion = math.hypot(*body.velocity) if initial_speed is None else initial_speed
+    if body.kinematics.type == "prescribed":
+        return body.kinematics.top_speed
+    if body.kinematics.type == "rigid":
+        return motion
+    material = scene.material_of(body)
+    values = material_parameters(material) if params is None else params
+    return float(material.wave_speed(values)) + motion
 
 
 def load_scene(path) -> Scene:
@@ -353,12 +430,12 @@ def _read_body(table: _Table):
     material = table.get("material", "str")
     region = _read_region(table.table("region"))
     velocity = table.get("velocity", "vec2", (0.0, 0.0))
-    kinematics = table.table("kinematics", {"type": "free"})
-    kinematics.known = ["type"]
-    kind = kinematics.get("type", "str", choices=("free", "prescribed", "rigid"))
-    if kind != "free":
-        raise SceneError(f"{kinematics.key('type')} = {kind!r} is not available yet in jaxmpm.")
-    kinematics.finish()
+    kinematics = _read_kinematics(table.table("kinematics", {"type": "free"}))
+    if kinematics.type == "prescribed" and "velocity" in table.data:
+        raise SceneError(
+            f"{table.key('velocity')} is given for a prescribed body: its velocity is "
+            f"{table.key('kinematics.velocity')} (remove {table.key('velocity')})."
+        )
     initial_stress = None
     if "initial_stress" in table.data:
         stress_table = table.table("initial_stress")
@@ -372,17 +449,51 @@ def _read_body(table: _Table):
         stress_table.finish()
         initial_stress = Geostatic(k0)
     table.finish()
-    return Body(name, material, region, velocity, kind, initial_stress)
+    return Body(name, material, region, velocity, kinematics, initial_stress)
+
+
+def _read_kinematics(table: _Table) -> Kinematics:
+    table.known = ["type", "velocity", "time"]
+    kind = table.get("type", "str", choices=KINEMATICS)
+    velocity = time = None
+    if kind == "prescribed":
+        if "time" in table.data:
+            time = tuple(convert(table.key("time"), item, "float") for item in _list(table, "time"))
+            velocity = table.get("velocity", "points")
+        else:
+            velocity = table.get("velocity", "vec2")
+    table.finish()
+    return Kinematics(kind, velocity, time)
+
+
+def _list(table: _Table, name):
+    value = table.get(name, "any")
+    if not isinstance(value, list) or not value:
+        raise SceneError(f"{table.key(name)} = {value!r} must be a list of numbers.")
+    return value
+
+
+def _read_contact(table: _Table) -> Contact:
+    table.known = ["pair", "friction"]
+    pair = table.get("pair", "strings")
+    if len(pair) != 2:
+        raise SceneError(f"{table.key('pair')} = {list(pair)!r} must name two bodies.")
+    friction = table.get("friction", "float", 0.0)
+    table.finish()
+    return Contact(pair, friction)
 
 
 def _read_probe(table: _Table):
-    table.known = ["name", "kind", "at", "body"]
+    table.known = ["name", "kind", "at", "body", "pair"]
     name = table.get("name", "str")
     kind = table.get("kind", "str", choices=PROBE_KINDS)
     at = table.get("at", "vec2") if kind == "displacement" else None
-    body = table.get("body", "str") if kind in ("body_displacement", "body_rotation") else None
+    body = table.get("body", "str") if kind in ("body_displacement", "body_rotation", "reaction") else None
+    pair = table.get("pair", "strings") if kind == "contact_force" else None
+    if pair is not None and len(pair) != 2:
+        raise SceneError(f"{table.key('pair')} = {list(pair)!r} must name two bodies.")
     table.finish()
-    return Probe(name, kind, at, body)
+    return Probe(name, kind, at, body, pair)
 
 
 def _array_of_tables(root: _Table, name):
@@ -453,12 +564,10 @@ def scene_from_dict(data) -> Scene:
 
     bodies = tuple(_read_body(table) for table in _array_of_tables(root, "bodies"))
     probes = tuple(_read_probe(table) for table in _array_of_tables(root, "probes"))
-    if root.data.get("contacts"):
-        raise SceneError("contacts are not available yet in jaxmpm: remove the [[contacts]] tables.")
-    root.used.add("contacts")
+    contacts = tuple(_read_contact(table) for table in _array_of_tables(root, "contacts"))
     root.finish()
     return Scene(
-        grid=grid, materials=materials, bodies=bodies, numerics=numerics, probes=probes, **run
+        grid=grid, materials=materials, bodies=bodies, numerics=numerics, probes=probes, contacts=contacts, **run
     )
 
 
@@ -506,9 +615,10 @@ def scene_to_dict(scene: Scene) -> dict:
             "name": body.name,
             "material": body.material,
             "region": region,
-            "velocity": list(body.velocity),
-            "kinematics": {"type": body.kinematics},
+            "kinematics": _kinematics_to_dict(body.kinematics),
         }
+        if body.kinematics.type != "prescribed":
+            entry["velocity"] = list(body.velocity)
         if body.initial_stress is not None:
             entry["initial_stress"] = {"geostatic": {"k0": body.initial_stress.k0}}
         bodies.append(entry)
@@ -519,6 +629,7 @@ def scene_to_dict(scene: Scene) -> dict:
                 "kind": probe.kind,
                 "at": None if probe.at is None else list(probe.at),
                 "body": probe.body,
+                "pair": None if probe.pair is None else list(probe.pair),
             }
         )
         for probe in scene.probes
@@ -532,7 +643,20 @@ def scene_to_dict(scene: Scene) -> dict:
     }
     if probes:
         data["probes"] = probes
+    if scene.contacts:
+        data["contacts"] = [{"pair": list(contact.pair), "friction": contact.friction} for contact in scene.contacts]
     return data
+
+
+def _kinematics_to_dict(kinematics: Kinematics) -> dict:
+    entry = {"type": kinematics.type}
+    if kinematics.type == "prescribed":
+        if kinematics.time is None:
+            entry["velocity"] = list(kinematics.velocity)
+        else:
+            entry["time"] = list(kinematics.time)
+            entry["velocity"] = [list(row) for row in kinematics.velocity]
+    return entry
 
 
 # --------------------------------------------------------------------------- checking
@@ -544,6 +668,30 @@ def _inside_grid(grid: Grid, point) -> bool:
         grid.origin[axis] - tolerance <= point[axis] <= grid.origin[axis] + grid.size[axis] + tolerance
         for axis in (0, 1)
     )
+
+
+def check_kinematics(key: str, kinematics: Kinematics):
+    """SceneError unless the kinematics are complete and consistent."""
+    if kinematics.type not in KINEMATICS:
+        raise SceneError(f"{key}.type = {kinematics.type!r} is not one of {', '.join(map(repr, KINEMATICS))}.")
+    if kinematics.type != "prescribed":
+        if kinematics.velocity is not None or kinematics.time is not None:
+            raise SceneError(f"{key} gives a velocity table for a {kinematics.type} body: only prescribed bodies take one.")
+        return
+    if kinematics.velocity is None:
+        raise SceneError(f"{key}.velocity is missing: a prescribed body needs its velocity [vx, vy].")
+    if kinematics.time is None:
+        if len(kinematics.velocity) != 2:
+            raise SceneError(f"{key}.velocity = {list(kinematics.velocity)!r} must be [vx, vy].")
+        return
+    times, rows = list(kinematics.time), list(kinematics.velocity)
+    if len(times) < 2 or len(rows) != len(times) or any(len(row) != 2 for row in rows):
+        raise SceneError(
+            f"{key}: time = {times} and velocity = {[list(row) for row in rows]} must be tables of the same "
+            "length (at least 2), one [vx, vy] per time."
+        )
+    if times[0] != 0.0 or any(later <= earlier for earlier, later in zip(times, times[1:])):
+        raise SceneError(f"{key}.time = {times} must start at 0 and increase strictly.")
 
 
 def check_scene(scene: Scene):
@@ -628,12 +776,41 @@ def check_scene(scene: Scene):
                     f"(origin {list(grid.origin)}, size {list(grid.size)})."
                 )
 
+        check_kinematics(f"{where}.kinematics", body.kinematics)
+
+    kinds = {body.name: body.kinematics.type for body in scene.bodies}
+    declared = []
+    for index, contact in enumerate(scene.contacts):
+        key = f"contacts[{index}].pair"
+        first, second = contact.pair
+        for name in contact.pair:
+            if name not in names:
+                raise SceneError(f"{key} = {list(contact.pair)} names {name!r}, which is not a body.")
+        if first == second:
+            raise SceneError(f"{key} = {list(contact.pair)} pairs body {first!r} with itself.")
+        if kinds[first] != "free" and kinds[second] != "free":
+            raise SceneError(
+                f"{key} = {list(contact.pair)} pairs two bodies that are not free ({kinds[first]} and "
+                f"{kinds[second]}): contact needs at least one deformable (free) body."
+            )
+        if set(contact.pair) in declared:
+            raise SceneError(f"{key} = {list(contact.pair)}: these two bodies are already paired.")
+        declared.append(set(contact.pair))
+        check_range(f"contacts[{index}].friction", contact.friction, low=0.0, low_inclusive=True)
+
     for index, probe in enumerate(scene.probes):
         where = f"probes[{index}]"
         if [p.name for p in scene.probes].count(probe.name) > 1:
             raise SceneError(f"{where}.name = {probe.name!r} is used by more than one probe.")
-        if probe.kind in ("body_displacement", "body_rotation") and probe.body not in names:
+        if probe.kind in ("body_displacement", "body_rotation", "reaction") and probe.body not in names:
             raise SceneError(f"{where}.body = {probe.body!r} is not the name of a body.")
+        if probe.kind == "reaction" and kinds[probe.body] != "prescribed":
+            raise SceneError(
+                f"{where}.body = {probe.body!r} is {kinds[probe.body]}, not prescribed: a reaction is the "
+                "force that keeps a prescribed body on its path."
+            )
+        if probe.kind == "contact_force" and set(probe.pair) not in declared:
+            raise SceneError(f"{where}.pair = {list(probe.pair)} is not a pair of [[contacts]].")
         if probe.kind == "displacement" and not _inside_grid(grid, probe.at):
             raise SceneError(f"{where}.at = {list(probe.at)} is outside the grid.")
 

@@ -1,7 +1,7 @@
 """`Simulation`: a scene split into static structure and a parameter pytree, and forward runs.
 
     sim = Simulation(scene)
-    sim.params                      # {"sand": {"density": 1800.0, "young": 2e7, ...}, ...}
+    sim.params                      # {"materials": {"sand": {"density": 1800.0, ...}}, "contacts": ...}
     sim.probes(params)              # {name: (T, k)}, differentiable w.r.t. every parameter
 
 The structure (grid, shape function, which materials, step count, time step) is fixed when the
@@ -23,15 +23,16 @@ from jaxmpm import state as state_bits
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.grid import GridLayout
 from jaxmpm.initial_stress import depth_below_top, geostatic_stress, jaky_k0
-from jaxmpm.materials import material_parameters
+from jaxmpm.contact import Interface
 from jaxmpm.materials.base import is_concrete
+from jaxmpm.parameters import scene_parameters
 from jaxmpm.probes import make_probes
 from jaxmpm.results import Result
 from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps
-from jaxmpm.scene import Scene
+from jaxmpm.scene import Scene, body_speed
 from jaxmpm.seeding import seed_bodies
 from jaxmpm.solver import BodyBlock, Structure, make_step
-from jaxmpm.state import Particles, counters_at_start
+from jaxmpm.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
 
 
 STEP_SLACK = 1e-6   # relative round-off allowed between the scene's dt and the stable limit
@@ -52,12 +53,44 @@ def time_stepping(scene: Scene):
     down so that a whole number of steps fills each output interval; the duration is rounded
     to a whole number of output intervals."""
     largest = scene.dt if scene.dt is not None else scene.cfl * scene.stable_dt
+    if not math.isfinite(largest):
+        raise SceneError(
+            "scene.cfl cannot set the time step: no body is free and none moves. Give scene.dt instead."
+        )
     interval = scene.output_interval
     per_output = max(1, math.ceil(interval / largest - 1e-9))
     outputs = max(1, round(scene.duration / interval))
     if abs(outputs * interval - scene.duration) > 1e-6 * scene.duration:
         outputs = math.ceil(scene.duration / interval)
     return interval / per_output, per_output, outputs
+
+
+def velocity_fields(scene: Scene):
+    """(field of each body, number of fields, interfaces): bodies of a contact pair and
+    prescribed or rigid bodies get a field each; all other bodies share field 0 (no slip
+    among them). Every pair of fields meets at an interface: frictional contact for a declared
+    pair, bonded (no slip) otherwise; two prescribed or rigid fields ignore each other."""
+    paired = {name for contact in scene.contacts for name in contact.pair}
+    own = [body.name for body in scene.bodies if body.name in paired or body.kinematics.type != "free"]
+    shared = [body.name for body in scene.bodies if body.name not in own]
+    field = {name: 0 for name in shared}
+    field.update({name: index + bool(shared) for index, name in enumerate(own)})
+    count = len(own) + bool(shared)
+    kinematic = {field[body.name] for body in scene.bodies if body.kinematics.type != "free"}
+    contacts = {frozenset(field[name] for name in contact.pair): contact.name for contact in scene.contacts}
+    interfaces = []
+    for first in range(count):
+        for second in range(first + 1, count):
+            if first in kinematic and second in kinematic:
+                continue
+            name = contacts.get(frozenset((first, second)))
+            if name is not None and field[name.split("/")[0]] != first:
+                # keep the pair's own order: an interface's impulse acts on its first field
+                first_field, second_field = second, first
+            else:
+                first_field, second_field = first, second
+            interfaces.append(Interface(first_field, second_field, name, first_field in kinematic, second_field in kinematic))
+    return field, count, tuple(interfaces)
 
 
 def snapshot_fields(particles, initial_x, fields):
@@ -87,8 +120,10 @@ class Simulation:
         self.dt, self.steps_per_output, self.outputs = time_stepping(scene)
         self.steps = self.steps_per_output * self.outputs
         self.time = np.arange(self.steps + 1) * self.dt
+        field, fields, interfaces = velocity_fields(scene)
         blocks = tuple(
-            BodyBlock(body.name, body.material, scene.material_of(body), start, stop)
+            BodyBlock(body.name, body.material, scene.material_of(body).law, start, stop, field[body.name],
+                      body.kinematics.type, body.kinematics.time)
             for body, (start, stop) in zip(scene.bodies, self.seeds.slices)
         )
         self.structure = Structure(
@@ -101,8 +136,11 @@ class Simulation:
             damping=scene.numerics.damping,
             update=scene.numerics.update,
             bodies=blocks,
+            fields=fields,
+            interfaces=interfaces,
+            point_spacing=scene.grid.cell / scene.numerics.ppc,
         )
-        self.params = {name: material_parameters(material) for name, material in scene.materials.items()}
+        self.params = scene_parameters(scene)
         self.step = make_step(self.structure)
         self.observe = make_probes(scene, self.seeds)
         self._probes = jax.jit(self._probes_from_state)
@@ -113,70 +151,81 @@ class Simulation:
     def point_count(self) -> int:
         return len(self.seeds.positions)
 
-    def material_time_steps(self, params, initial: Particles | None = None) -> dict:
-        """{material: h / (c_p + max speed of its bodies)} for these parameter values [s]; the
-        speed is each body's scene velocity, or the largest |v| of its points in `initial`."""
+    def material_time_steps(self, params, initial: State | None = None) -> dict:
+        """{material: h / (c_p + max speed of its free bodies)} for these parameter values [s];
+        the speed is each body's scene velocity, or the largest |v| of its points in `initial`.
+        Prescribed and rigid bodies do not count: their stiffness never sets the step."""
         limits = {}
         for block, body in zip(self.structure.bodies, self.scene.bodies):
-            if initial is None:
-                motion = math.hypot(*body.velocity)
-            else:
-                velocity = np.asarray(initial.v[block.start : block.stop])
+            if block.kinematics != "free":
+                continue
+            motion = None
+            if initial is not None:
+                velocity = np.asarray(initial.particles.v[block.points])
                 motion = float(np.max(np.hypot(velocity[:, 0], velocity[:, 1])))
-            speed = float(self.scene.material_of(body).wave_speed(params[body.material])) + motion
+            speed = body_speed(self.scene, body, params["materials"][body.material], motion)
             limit = self.scene.grid.cell / speed
             limits[body.material] = min(limit, limits.get(body.material, limit))
         return limits
 
-    def stable_time_step(self, params, initial: Particles | None = None) -> float:
-        """h / max over bodies of (c_p + |v|) for these parameter values (and initial state) [s];
-        the scene's own values give `scene.stable_dt`."""
-        return min(self.material_time_steps(params, initial).values())
+    def stable_time_step(self, params, initial: State | None = None) -> float:
+        """h / max over free bodies of (c_p + |v|) for these parameter values (and initial
+        state) [s]; the scene's own values give `scene.stable_dt` (when a free body sets it)."""
+        return min(self.material_time_steps(params, initial).values(), default=math.inf)
 
-    def check_time_step(self, params, initial: Particles | None = None):
+    def check_time_step(self, params, initial: State | None = None):
         """SceneError if concrete parameter values (or initial velocities) make the fixed time
         step unstable. Traced values (inside jit, grad, vmap) cannot be checked here: there an
         unstable step shows up as a non-finite state (error bits, SimulationError in `run`). A
         relative slack of STEP_SLACK absorbs round-off (float32 parameters, the rounding of dt
         to whole steps)."""
-        leaves = jax.tree_util.tree_leaves(params) + ([] if initial is None else [initial.v])
+        leaves = jax.tree_util.tree_leaves(params) + ([] if initial is None else [initial.particles.v])
         if not all(is_concrete(leaf) for leaf in leaves):
             return
         for material, limit in self.material_time_steps(params, initial).items():
             if self.dt > limit * (1.0 + STEP_SLACK):
+                own = self.params["materials"][material]
                 changed = {
-                    key: float(value) for key, value in params[material].items()
-                    if float(value) != float(self.params[material][key])
+                    key: float(value) for key, value in params["materials"][material].items()
+                    if float(value) != float(own[key])
                 }
                 values = ", ".join(f"{key} = {value:g}" for key, value in changed.items()) or "the scene's values"
                 moving = "" if initial is None else (
-                    f" with the initial velocities (up to {float(np.max(np.abs(np.asarray(initial.v)))):.4g} m/s)"
+                    f" with the initial velocities (up to {float(np.max(np.abs(np.asarray(initial.particles.v)))):.4g} m/s)"
                 )
                 raise SceneError(
-                    f"params[{material!r}] ({values}){moving} need a time step below {limit:.4g} s, but the one "
-                    f"fixed from the scene is {self.dt:.4g} s: build the Simulation from a scene holding these "
-                    f"values (scene.with_value) or lower scene.cfl."
+                    f"params['materials'][{material!r}] ({values}){moving} need a time step below {limit:.4g} s, "
+                    f"but the one fixed from the scene is {self.dt:.4g} s: build the Simulation from a scene "
+                    f"holding these values (scene.with_value) or lower scene.cfl."
                 )
 
     def cast(self, params):
         """Parameters as arrays of the scene's dtype (so values of any kind never retrace)."""
         return jax.tree_util.tree_map(lambda value: jnp.asarray(value, self.dtype), params)
 
-    def initial_state(self, params=None) -> Particles:
-        """The state at t = 0: seeded points at rest (or at their body's velocity), zero stress.
-        Masses follow params[material]["density"], so gradients reach the density."""
+    def initial_state(self, params=None) -> State:
+        """The state at t = 0: seeded points at rest (or at their body's velocity; prescribed
+        bodies at their velocity at t = 0), zero stress or geostatic; rigid bodies not yet
+        moved. Masses follow params["materials"][material]["density"], so gradients reach it."""
         params = self.cast(self.params if params is None else params)
         count, dtype = self.point_count, self.dtype
-        masses, velocities, stresses, histories = [], [], [], []
+        masses, velocities, stresses, histories, rigid = [], [], [], [], {}
         for block, body in zip(self.structure.bodies, self.scene.bodies):
             size = block.stop - block.start
-            material = params[block.material_name]
-            volume = jnp.asarray(self.seeds.volumes[block.start : block.stop], dtype)
+            material = params["materials"][block.material_name]
+            volume = jnp.asarray(self.seeds.volumes[block.points], dtype)
             masses.append(material["density"] * volume)
-            velocities.append(jnp.broadcast_to(jnp.asarray(body.velocity, dtype), (size, 2)))
+            velocity = jnp.asarray(body.velocity, dtype)
+            if block.kinematics == "prescribed":
+                velocity = params["bodies"][block.name]["velocity"]
+                velocity = velocity if block.times is None else velocity[0]
+            velocities.append(jnp.broadcast_to(velocity, (size, 2)))
             stresses.append(self.body_initial_stress(body, block, material))
-            histories.append(block.material.init_state(size, dtype))
-        return Particles(
+            histories.append(block.law.init_state(size, dtype))
+            if block.kinematics == "rigid":
+                zero = jnp.zeros((), dtype)
+                rigid[block.name] = RigidMotion(jnp.zeros(2, dtype), zero, velocity, zero)
+        particles = Particles(
             x=jnp.asarray(self.seeds.positions, dtype),
             v=jnp.concatenate(velocities),
             affine=jnp.zeros((count, 2, 2), dtype),
@@ -185,8 +234,8 @@ class Simulation:
             mass=jnp.concatenate(masses),
             history=tuple(histories),
             flags=jnp.zeros((count,), jnp.int32),
-            **counters_at_start(),
         )
+        return State(particles=particles, rigid=rigid, **counters_at_start())
 
     def body_initial_stress(self, body, block, material):
         """(n_body, 3, 3) initial stress of one body: zero, or geostatic from its params."""
@@ -196,26 +245,39 @@ class Simulation:
         k0 = body.initial_stress.k0
         k0 = jaky_k0(material["friction_angle"]) if k0 == "jaky" else k0
         spacing = self.scene.grid.cell / self.scene.numerics.ppc
-        depth = depth_below_top(self.seeds.positions[block.start : block.stop], spacing, self.scene.grid.origin[0])
+        depth = depth_below_top(self.seeds.positions[block.points], spacing, self.scene.grid.origin[0])
         return geostatic_stress(jnp.asarray(depth, self.dtype), material["density"], self.scene.gravity[1], k0)
 
     # ------------------------------------------------------------------ differentiable
 
     def _advance_and_observe(self, params, initial_x):
-        def advance(particles):
-            particles = self.step(params, particles)
-            return particles, self.observe(particles, initial_x)
+        def advance(state):
+            state, diagnostics = self.step(params, state)
+            return state, self.observe(state, diagnostics, initial_x)
 
         return advance
 
     def _probes_from_state(self, params, initial):
-        advance = self._advance_and_observe(params, initial.x)
+        advance = self._advance_and_observe(params, initial.particles.x)
         final, histories = checkpointed_rollout(advance, initial, self.steps, self.checkpointing)
-        first = self.observe(initial, initial.x)
+        first = self.observe_start(initial)
         probes = {name: jnp.concatenate([first[name][None], histories[name]]) for name in first}
         return probes, final
 
-    def probes(self, params=None, initial: Particles | None = None):
+    def observe_start(self, state):
+        """Probe values of a state before any step ({name: (k,)}): forces read 0 there (the
+        first step's forces are the first ones a run records)."""
+        return self.observe(state, self.quiet_diagnostics(state.particles.x.dtype), state.particles.x)
+
+    def quiet_diagnostics(self, dtype):
+        """Diagnostics of no step: every contact force and reaction zero."""
+        zero = jnp.zeros(2, dtype)
+        return Diagnostics(
+            {contact.name: zero for contact in self.scene.contacts},
+            {block.name: zero for block in self.structure.blocks_of("prescribed")},
+        )
+
+    def probes(self, params=None, initial: State | None = None):
         """Probe histories {name: (T, k)} with T = steps + 1 (t = 0 included), from `params`
         (default `self.params`) and an optional initial state (default `initial_state(params)`).
         Differentiable with respect to params and to the initial state."""
@@ -224,7 +286,7 @@ class Simulation:
         initial = self.initial_state(params) if initial is None else initial
         return self._probes(params, initial)[0]
 
-    def final_state(self, params=None, initial: Particles | None = None) -> Particles:
+    def final_state(self, params=None, initial: State | None = None) -> State:
         """The state after the last step (differentiable, like `probes`)."""
         params = self.cast(self.params if params is None else params)
         self.check_time_step(params, initial)
@@ -233,9 +295,9 @@ class Simulation:
 
     # ------------------------------------------------------------------ forward runs
 
-    def _advance_one_output(self, params, particles, initial_x):
+    def _advance_one_output(self, params, state, initial_x):
         advance = self._advance_and_observe(params, initial_x)
-        return scan_steps(advance, particles, self.steps_per_output)
+        return scan_steps(advance, state, self.steps_per_output)
 
     def run(self, params=None, initial=None, progress=True, save_to=None, autosave_seconds=60.0):
         """Forward run with a progress bar; see `simulate`."""
@@ -243,12 +305,12 @@ class Simulation:
 
         params = self.cast(self.params if params is None else params)
         self.check_time_step(params, initial)
-        particles = self.initial_state(params) if initial is None else initial
-        particles = particles.replace(**counters_at_start())
-        initial_x = particles.x
+        state = self.initial_state(params) if initial is None else initial
+        state = state.replace(**counters_at_start())
+        initial_x = state.particles.x
         fields = self.scene.snapshot_fields
-        probes = {name: [np.asarray(value)[None]] for name, value in self.observe(particles, initial_x).items()}
-        snapshots = [snapshot_fields(particles, initial_x, fields)]
+        probes = {name: [np.asarray(value)[None]] for name, value in self.observe_start(state).items()}
+        snapshots = [snapshot_fields(state.particles, initial_x, fields)]
         last_save = clock.monotonic()
         bar = tqdm(total=self.steps, unit="step", disable=not progress, desc=self.scene.name)
 
@@ -257,20 +319,20 @@ class Simulation:
 
         try:
             for output in range(self.outputs):
-                particles, values = self._advance(params, particles, initial_x)
-                error_step = int(particles.error_step)
+                state, values = self._advance(params, state, initial_x)
+                error_step = int(state.error_step)
                 if error_step >= 0:
                     keep = error_step - output * self.steps_per_output - 1
                     for name, value in values.items():
                         probes[name].append(np.asarray(value)[:keep])
-                    message = describe_failure(self, particles)
+                    message = describe_failure(self, state)
                     result = partial_result(error_step - 1, message)
                     if save_to is not None:
                         result.save(save_to)
                     raise SimulationError(message, result)
                 for name, value in values.items():
                     probes[name].append(np.asarray(value))
-                snapshots.append(snapshot_fields(particles, initial_x, fields))
+                snapshots.append(snapshot_fields(state.particles, initial_x, fields))
                 bar.update(self.steps_per_output)
                 if save_to is not None and clock.monotonic() - last_save > autosave_seconds:
                     partial_result((output + 1) * self.steps_per_output, "run in progress").save(save_to)
@@ -289,13 +351,13 @@ class Simulation:
         return result
 
 
-def describe_failure(sim: Simulation, particles: Particles) -> str:
+def describe_failure(sim: Simulation, state: State) -> str:
     """One sentence: which step, body and point went wrong, and how."""
-    flags = np.asarray(particles.flags)
-    index = int(particles.error_point)
+    flags = np.asarray(state.particles.flags)
+    index = int(state.error_point)
     block = next(b for b in sim.structure.bodies if b.start <= index < b.stop)
     what = "left the grid" if flags[index] & state_bits.LEFT_GRID else "became non-finite"
-    step = int(particles.error_step)
+    step = int(state.error_step)
     return (
         f"the run stopped at step {step} (t = {step * sim.dt:.6g} s): point {index - block.start} "
         f"of body {block.name!r} {what}; the output holds the run up to the step before."

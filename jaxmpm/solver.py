@@ -1,11 +1,21 @@
 """One explicit MPM step (paper eq. 3, M a = F - R), as a straight run of named phases.
 
     stencil   = shape functions of the points on the grid
-    nodes     = particles_to_grid            mass, momentum, internal + external force
+    nodes     = particles_to_grid            each field's mass, momentum, internal + external
+                                             force (and mass gradient, with contact pairs)
     velocity  = update_grid_velocity         local damping, M a = F, edge conditions
+    velocity  = resolve_interfaces           (several fields only) prescribed and rigid
+                                             fields take their motion; contact and bonding
+                                             impulses between fields (`contact`)
     particles = grid_to_particles            FLIP/PIC velocity blend, positions
+    state     = move_kinematic_bodies        prescribed points move on their path, rigid
+                                             bodies under gravity and the impulses received
     velocity  = remap_velocity (MUSL only)   nodal velocity from the updated points
-    particles = update_stress                L = grad v, each body's material, volume
+    particles = update_stress                L = grad v, each free body's material, volume
+
+Bodies talk to the grid through velocity fields (node arrays carry a leading field axis):
+bodies of a contact pair and prescribed or rigid bodies get one each, all others share one.
+A scene with neither has one field and compiles exactly the single-field step.
 
 MUSL (Sulsky et al. 1994, "modified update stress last") is the default: the strain rate is
 computed from nodal velocities re-projected from the updated points, so a node touched by a
@@ -24,31 +34,47 @@ shape functions). APIC avoids
 FLIP's noise and PIC's dissipation, and has no blend to tune.
 
 `make_step(structure)` closes over the static structure and returns a pure
-`step(params, particles) -> particles`; every physical value comes from `params`.
+`step(params, state) -> (state, diagnostics)`; every physical value comes from `params`
+(namespaced: params["materials"], params["contacts"], params["bodies"]); the diagnostics are
+what probes read beyond the points (contact forces, reactions).
 """
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from jaxmpm.contact import Interface, resolve_interfaces
 from jaxmpm.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
 )
-from jaxmpm.state import record_errors
+from jaxmpm.state import Diagnostics, record_errors
 
 MASS_FLOOR = 1e-10   # nodes lighter than this fraction of the heaviest point count as empty
 
 
 @dataclasses.dataclass(frozen=True)
 class BodyBlock:
-    """A body's points occupy [start, stop); its material object supplies only static options."""
+    """A body's points occupy [start, stop) and talk to velocity field `field` of the grid.
+
+    law: its material's static constitutive law (values come from params["materials"]
+    [material_name]); kinematics: "free" | "prescribed" | "rigid"; times: the prescribed
+    velocity table's times [s] (None: a constant velocity)."""
 
     name: str
     material_name: str
-    material: object
+    law: object
     start: int
     stop: int
+    field: int = 0
+    kinematics: str = "free"
+    times: tuple[float, ...] | None = None
+
+    @property
+    def points(self):
+        return slice(self.start, self.stop)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,8 +83,10 @@ class Structure:
 
     layout: the grid; boundaries: edge conditions; gravity (2,) [m/s^2]; dt [s];
     transfer: "flip" | "apic"; flip: FLIP fraction of the velocity update (1 = FLIP, 0 = PIC),
-    used with transfer = "flip"; damping: local (Cundall)
-    damping coefficient; update: "musl" | "usl"; bodies: the contiguous body blocks.
+    used with transfer = "flip"; damping: local (Cundall) damping coefficient; update:
+    "musl" | "usl"; bodies: the contiguous body blocks; fields: number of velocity fields on
+    the grid; interfaces: the pairs of fields that meet (`contact.Interface`); point_spacing:
+    h / ppc [m] (a rigid body's points are squares of this side).
     """
 
     layout: GridLayout
@@ -70,6 +98,16 @@ class Structure:
     damping: float
     update: str
     bodies: tuple[BodyBlock, ...]
+    fields: int = 1
+    interfaces: tuple[Interface, ...] = ()
+    point_spacing: float = 0.0
+
+    @property
+    def has_contact(self):
+        return any(interface.contact is not None for interface in self.interfaces)
+
+    def blocks_of(self, kinematics):
+        return tuple(block for block in self.bodies if block.kinematics == kinematics)
 
 
 def point_momentum(particles, stencil, offsets):
@@ -90,30 +128,48 @@ def combine_on_stencil(terms):
     return sum(coefficient[..., None] * vector[:, None, None, :] for coefficient, vector in terms)
 
 
-def particles_to_grid(particles, stencil, offsets, layout, boundaries, gravity):
-    """Node mass m_I, momentum p_I and force f_I = sum_p (m_p N_I g - V_p sigma_p . grad N_I).
+class Nodes(NamedTuple):
+    """Grid values of every velocity field: mass (F, nx, ny) [kg/m]; momentum, force
+    (F, nx, ny, 2); mass_gradient (F, nx, ny, 2) [kg/m^2 per m] (None without contact pairs)."""
 
-    Built as one (N, s, s, 5) array [m, p_x, p_y, f_x, f_y] for the single scatter."""
+    mass: jax.Array
+    momentum: jax.Array
+    force: jax.Array
+    mass_gradient: jax.Array | None
+
+
+def particles_to_grid(particles, stencil, offsets, field, structure):
+    """Node mass m_I, momentum p_I, force f_I = sum_p (m_p N_I g - V_p sigma_p . grad N_I) and,
+    with contact pairs, the mass gradient sum_p m_p grad N_I, each point into its own field.
+
+    Built as one (N, s, s, 5 or 7) array [m, p_x, p_y, f_x, f_y (, dm/dx, dm/dy)] for the
+    single scatter."""
     weights, gradients = stencil.weights, stencil.gradients
     mass, velocity = particles.mass, particles.v
     zero = jnp.zeros_like(mass)
-    gravity = jnp.asarray(gravity, mass.dtype)
+    gravity = jnp.asarray(structure.gravity, mass.dtype)
     stress = -particles.volume[:, None, None] * particles.stress[:, :2, :2]     # -V_p sigma_p
+    normals = structure.has_contact
 
-    def channels(*columns):
-        return jnp.stack(columns, axis=1)
+    def channels(*columns, gradient=()):
+        return jnp.stack(columns + (gradient if normals else ()), axis=1)
 
-    terms = [   # N_I [m, m v, m g] + dN_I/dx_j [0, 0, 0, -V sigma_xj, -V sigma_yj]
-        (weights, channels(mass, mass * velocity[:, 0], mass * velocity[:, 1], mass * gravity[0], mass * gravity[1])),
-        (gradients[..., 0], channels(zero, zero, zero, stress[:, 0, 0], stress[:, 1, 0])),
-        (gradients[..., 1], channels(zero, zero, zero, stress[:, 0, 1], stress[:, 1, 1])),
+    terms = [   # N_I [m, m v, m g] + dN_I/dx_j [0, 0, 0, -V sigma_xj, -V sigma_yj (, m delta_xj, m delta_yj)]
+        (weights, channels(mass, mass * velocity[:, 0], mass * velocity[:, 1], mass * gravity[0], mass * gravity[1],
+                           gradient=(zero, zero))),
+        (gradients[..., 0], channels(zero, zero, zero, stress[:, 0, 0], stress[:, 1, 0], gradient=(mass, zero))),
+        (gradients[..., 1], channels(zero, zero, zero, stress[:, 0, 1], stress[:, 1, 1], gradient=(zero, mass))),
     ]
     if offsets is not None:   # APIC: m_p N_I C_p (x_I - x_p) joins the momentum
         weighted, affine = mass[:, None, None] * weights, particles.affine
         for axis in range(2):
-            terms.append((weighted * offsets[..., axis], channels(zero, affine[:, 0, axis], affine[:, 1, axis], zero, zero)))
-    nodes = fold_ghosts(scatter_to_nodes(layout, stencil.base, combine_on_stencil(terms)), layout, boundaries)
-    return nodes[..., 0], nodes[..., 1:3], nodes[..., 3:5]
+            terms.append((weighted * offsets[..., axis],
+                          channels(zero, affine[:, 0, axis], affine[:, 1, axis], zero, zero, gradient=(zero, zero))))
+    layout = structure.layout
+    values = combine_on_stencil(terms)
+    nodes = scatter_to_nodes(layout, stencil.base, values, field, structure.fields)
+    nodes = fold_ghosts(nodes, layout, structure.boundaries)
+    return Nodes(nodes[..., 0], nodes[..., 1:3], nodes[..., 3:5], nodes[..., 5:7] if normals else None)
 
 
 def safe_velocity(momentum, mass, floor):
@@ -127,17 +183,96 @@ def local_damping(force, velocity, coefficient):
     return force - coefficient * jnp.abs(force) * jnp.sign(velocity)
 
 
-def update_grid_velocity(mass, momentum, force, dt, damping, constrain, floor):
-    """Nodal velocities before and after the step, with the edge conditions applied."""
-    velocity_old = constrain(safe_velocity(momentum, mass, floor))
+def update_grid_velocity(nodes, dt, damping, constrain, floor):
+    """Nodal velocities before and after M a = F (trial: before any contact), with the edge
+    conditions applied."""
+    velocity_old = constrain(safe_velocity(nodes.momentum, nodes.mass, floor))
+    force = nodes.force
     if damping:
         force = local_damping(force, velocity_old, damping)
-    velocity_new = constrain(safe_velocity(momentum + dt * force, mass, floor))
+    velocity_new = constrain(safe_velocity(nodes.momentum + dt * force, nodes.mass, floor))
     return velocity_old, velocity_new
 
 
-def grid_to_particles(particles, stencil, velocity_old, velocity_new, transfer, flip, dt):
-    """Points take the new grid velocity and move: x_p <- x_p + dt sum N_I v_I.
+def prescribed_velocity(block, velocity, time):
+    """A prescribed body's velocity (2,) at `time` [s]: the constant `velocity` (2,), or the
+    table `velocity` (K, 2) at `block.times`, linear in between, held beyond the ends."""
+    if block.times is None:
+        return velocity
+    times = jnp.asarray(block.times, velocity.dtype)
+    return jnp.stack([jnp.interp(time, times, velocity[:, axis]) for axis in range(2)])
+
+
+def rigid_body_frame(particles, block, spacing):
+    """(mass M, centre of mass c (2,), polar moment J about c) of a rigid body from its points,
+    each a square of side `spacing`: J = sum m_p (|x_p - c|^2 + spacing^2 / 6)."""
+    mass, positions = particles.mass[block.points], particles.x[block.points]
+    total = jnp.sum(mass)
+    centre = jnp.dot(mass, positions) / total
+    arm = positions - centre
+    inertia = jnp.dot(mass, arm[:, 0] * arm[:, 0] + arm[:, 1] * arm[:, 1] + spacing * spacing / 6.0)
+    return total, centre, inertia
+
+
+def node_positions(layout, dtype):
+    """(nx, ny, 2) positions of the node arrays' nodes [m] (ghosts included)."""
+    nx, ny = layout.nodes
+    i, j = jnp.meshgrid(jnp.arange(nx, dtype=dtype), jnp.arange(ny, dtype=dtype), indexing="ij")
+    origin = jnp.asarray(layout.origin, dtype)
+    return jnp.stack([i - layout.ghost, j - layout.ghost], axis=-1) * layout.cell + origin
+
+
+def cross(arm, vectors):
+    """z-component of arm x vector, (...,)."""
+    return arm[..., 0] * vectors[..., 1] - arm[..., 1] * vectors[..., 0]
+
+
+def spin_velocity(spin, arm):
+    """omega e_z x arm, (..., 2)."""
+    return jnp.stack([-spin * arm[..., 1], spin * arm[..., 0]], axis=-1)
+
+
+def kinematic_motions(params, state, structure, time_new):
+    """The velocity each prescribed and rigid body takes in this step, before contact.
+
+    Returns {body: (kind, data)}: prescribed -> (velocity now (2,), velocity after the step (2,));
+    rigid -> (M, c, J, V*, omega) with V* = V + dt g, its velocity if nothing touched it."""
+    dtype = state.particles.x.dtype
+    gravity = jnp.asarray(structure.gravity, dtype)
+    motions = {}
+    for block in structure.blocks_of("prescribed"):
+        velocity = params["bodies"][block.name]["velocity"]
+        before = prescribed_velocity(block, velocity, time_new - structure.dt)
+        motions[block.name] = (before, prescribed_velocity(block, velocity, time_new))
+    for block in structure.blocks_of("rigid"):
+        mass, centre, inertia = rigid_body_frame(state.particles, block, structure.point_spacing)
+        motion = state.rigid[block.name]
+        motions[block.name] = (mass, centre, inertia, motion.velocity + structure.dt * gravity, motion.spin)
+    return motions
+
+
+def impose_kinematic_fields(velocity, structure, motions, positions):
+    """Node velocities of prescribed fields set to their velocity, of rigid fields to the
+    rigid motion V* + omega x (x_I - c)."""
+    for block in structure.blocks_of("prescribed"):
+        velocity = velocity.at[block.field].set(jnp.broadcast_to(motions[block.name][1], velocity.shape[1:]))
+    for block in structure.blocks_of("rigid"):
+        _, centre, _, translation, spin = motions[block.name]
+        velocity = velocity.at[block.field].set(translation + spin_velocity(spin, positions - centre))
+    return velocity
+
+
+def received_impulses(structure, impulses):
+    """{field: (nx, ny, 2) total impulse the field received from all interfaces}."""
+    received = {}
+    for interface, impulse in zip(structure.interfaces, impulses):
+        received[interface.first] = received.get(interface.first, 0.0) + impulse
+        received[interface.second] = received.get(interface.second, 0.0) - impulse
+    return received
+
+
+def grid_to_particles(particles, stencil, velocity_old, velocity_new, field, transfer, flip, dt, layout):
+    """Points take the new grid velocity of their field and move: x_p <- x_p + dt sum N_I v_I.
 
     FLIP/PIC: v_p <- flip (v_p + sum N_I dv_I) + (1 - flip) sum N_I v_I.
     APIC: v_p <- sum N_I v_I (its C_p is set with the velocity gradient, in `make_step`).
@@ -146,39 +281,87 @@ def grid_to_particles(particles, stencil, velocity_old, velocity_new, transfer, 
     if transfer == "apic":
         flip = 0.0
     nodal = jnp.concatenate([velocity_new, velocity_new - velocity_old], axis=-1)
-    at_points = sum_over_stencil(stencil.weights[..., None] * gather_from_nodes(stencil.base, nodal, support))
+    gathered = gather_from_nodes(layout, stencil.base, nodal, support, field)
+    at_points = sum_over_stencil(stencil.weights[..., None] * gathered)
     grid_velocity, increment = at_points[:, :2], at_points[:, 2:]
     velocity = flip * (particles.v + increment) + (1.0 - flip) * grid_velocity
     return particles.replace(x=particles.x + dt * grid_velocity, v=velocity)
 
 
-def remap_velocity(particles, stencil, layout, boundaries, mass, constrain, floor):
-    """MUSL: nodal velocity sum_p m_p v_p N_I / m_I from the updated point velocities."""
-    momentum = scatter_to_nodes(layout, stencil.base, point_momentum(particles, stencil, None))
-    return constrain(safe_velocity(fold_ghosts(momentum, layout, boundaries, scalars=0), mass, floor))
+def move_kinematic_bodies(state, structure, motions, received, positions):
+    """Prescribed points move at their velocity; rigid bodies take the impulses their fields
+    received (dV = sum J / M, d omega = sum (x_I - c) x J / J_c) and move as one body.
+
+    Returns (state, reactions {prescribed body: (2,) force that kept it on its path})."""
+    particles, dt = state.particles, structure.dt
+    x, v, rigid = particles.x, particles.v, dict(state.rigid)
+    gravity = jnp.asarray(structure.gravity, x.dtype)
+    reactions = {}
+    for block in structure.blocks_of("prescribed"):
+        before, after = motions[block.name]
+        mass = jnp.sum(particles.mass[block.points])
+        impulse = received.get(block.field)
+        pushed = 0.0 if impulse is None else jnp.sum(impulse, axis=(0, 1))
+        reactions[block.name] = mass * (after - before) / dt - mass * gravity - pushed / dt
+        count = block.stop - block.start
+        x = x.at[block.points].add(dt * after)
+        v = v.at[block.points].set(jnp.broadcast_to(after, (count, 2)))
+    for block in structure.blocks_of("rigid"):
+        mass, centre, inertia, translation, spin = motions[block.name]
+        impulse = received.get(block.field)
+        if impulse is not None:
+            translation = translation + jnp.sum(impulse, axis=(0, 1)) / mass
+            spin = spin + jnp.sum(cross(positions - centre, impulse)) / inertia
+        turn = dt * spin
+        cos, sin = jnp.cos(turn), jnp.sin(turn)
+        arm = x[block.points] - centre
+        turned = jnp.stack([cos * arm[:, 0] - sin * arm[:, 1], sin * arm[:, 0] + cos * arm[:, 1]], axis=-1)
+        x = x.at[block.points].set(centre + dt * translation + turned)
+        v = v.at[block.points].set(translation + spin_velocity(spin, turned))
+        motion = state.rigid[block.name]
+        rigid[block.name] = motion.replace(
+            translation=motion.translation + dt * translation, rotation=motion.rotation + turn,
+            velocity=translation, spin=spin,
+        )
+    return state.replace(particles=particles.replace(x=x, v=v), rigid=rigid), reactions
 
 
-def velocity_gradient(stencil, velocity):
-    """L_p = sum_I v_I (x) grad N_I, embedded in 3x3 (plane strain: no out-of-plane rate)."""
+def remap_velocity(particles, stencil, field, structure, mass, constrain, floor):
+    """MUSL: nodal velocity sum_p m_p v_p N_I / m_I of each field from the updated points."""
+    layout = structure.layout
+    momentum = scatter_to_nodes(layout, stencil.base, point_momentum(particles, stencil, None), field, structure.fields)
+    return constrain(safe_velocity(fold_ghosts(momentum, layout, structure.boundaries, scalars=0), mass, floor))
+
+
+def velocity_gradient(stencil, velocity, field, layout):
+    """L_p = sum_I v_I (x) grad N_I in the point's field, embedded in 3x3 (plane strain: no
+    out-of-plane rate)."""
     support = stencil.weights.shape[1]
-    nodal = gather_from_nodes(stencil.base, velocity, support)
+    nodal = gather_from_nodes(layout, stencil.base, velocity, support, field)
     in_plane = sum_over_stencil(nodal[..., :, None] * stencil.gradients[..., None, :])
     return jnp.pad(in_plane, ((0, 0), (0, 1), (0, 1)))
 
 
 def update_stress(params, particles, gradient, bodies, dt):
-    """Each body's material updates its own slice; volumes follow det(I + dt L)."""
-    stresses, histories = [], []
-    for block, history in zip(bodies, particles.history):
-        points = slice(block.start, block.stop)
-        update = jax.vmap(block.material.update, in_axes=(None, 0, 0, None, 0))
-        stress, history = update(
-            params[block.material_name], particles.stress[points], gradient[points], dt, history
-        )
-        stresses.append(stress)
-        histories.append(history)
+    """Each free body's material updates its own slice; volumes follow det(I + dt L).
+    Prescribed and rigid bodies keep their stress and volume."""
+    stresses, histories, stretches = [], [], []
     # det(I + dt L) of the in-plane 2x2 block, written out (cheaper than an LU per point)
     stretch = (1.0 + dt * gradient[:, 0, 0]) * (1.0 + dt * gradient[:, 1, 1]) - dt * dt * gradient[:, 0, 1] * gradient[:, 1, 0]
+    for block, history in zip(bodies, particles.history):
+        points = block.points
+        if block.kinematics != "free":
+            stresses.append(particles.stress[points])
+            histories.append(history)
+            stretches.append(jnp.ones_like(stretch[points]))
+            continue
+        update = jax.vmap(block.law.update, in_axes=(None, 0, 0, None, 0))
+        stress, history = update(params[block.material_name], particles.stress[points], gradient[points], dt, history)
+        stresses.append(stress)
+        histories.append(history)
+        stretches.append(stretch[points])
+    if any(block.kinematics != "free" for block in bodies):
+        stretch = jnp.concatenate(stretches)
     return particles.replace(
         stress=jnp.concatenate(stresses),
         history=tuple(histories),
@@ -186,11 +369,25 @@ def update_stress(params, particles, gradient, bodies, dt):
     )
 
 
-def make_step(structure: Structure):
-    """The pure step function of a scene: step(params, particles) -> particles."""
-    layout, dt = structure.layout, structure.dt
+def contact_forces(structure, impulses, dt):
+    """{pair name: (2,) force of the pair's first body on its second [N/m]} from the impulses
+    of the contact interfaces (an interface's impulse J acts on its `first` field)."""
+    return {
+        interface.contact: -jnp.sum(impulse, axis=(0, 1)) / dt
+        for interface, impulse in zip(structure.interfaces, impulses)
+        if interface.contact is not None
+    }
 
-    def step(params, particles):
+
+def make_step(structure: Structure):
+    """The pure step function of a scene: step(params, state) -> (state, diagnostics)."""
+    layout, dt = structure.layout, structure.dt
+    field = None
+    if structure.fields > 1:   # each point's velocity field, a compile-time constant
+        field = jnp.asarray(np.concatenate([np.full(b.stop - b.start, b.field, np.int32) for b in structure.bodies]))
+
+    def step(params, state):
+        particles = state.particles
         mask = boundary_mask(layout, structure.boundaries, particles.x.dtype)
 
         def constrain(velocity):
@@ -201,25 +398,38 @@ def make_step(structure: Structure):
         offsets = None
         if structure.transfer == "apic":
             offsets = layout.node_offsets(stencil.base, particles.x, stencil.weights.shape[1])
-        mass, momentum, force = jax.named_call(particles_to_grid, name="particles_to_grid")(
-            particles, stencil, offsets, layout, structure.boundaries, structure.gravity
-        )
+        nodes = jax.named_call(particles_to_grid, name="particles_to_grid")(particles, stencil, offsets, field, structure)
         velocity_old, velocity_new = jax.named_call(update_grid_velocity, name="update_grid")(
-            mass, momentum, force, dt, structure.damping, constrain, floor
+            nodes, dt, structure.damping, constrain, floor
         )
+        impulses, received, motions, positions = [], {}, {}, None
+        if structure.fields > 1:
+            time_new = (state.step + 1).astype(particles.x.dtype) * dt
+            positions = node_positions(layout, particles.x.dtype)
+            motions = kinematic_motions(params, state, structure, time_new)
+            velocity_new = impose_kinematic_fields(velocity_new, structure, motions, positions)
+            frictions = {name: values["friction"] for name, values in params.get("contacts", {}).items()}
+            velocity_new, impulses = jax.named_call(resolve_interfaces, name="contact")(
+                structure.interfaces, nodes.mass, velocity_new, nodes.mass_gradient, frictions, nodes.mass > floor
+            )
+            velocity_new = constrain(velocity_new)
+            received = received_impulses(structure, impulses)
         particles = jax.named_call(grid_to_particles, name="grid_to_particles")(
-            particles, stencil, velocity_old, velocity_new, structure.transfer, structure.flip, dt
+            particles, stencil, velocity_old, velocity_new, field, structure.transfer, structure.flip, dt, layout
         )
+        state, reactions = move_kinematic_bodies(state.replace(particles=particles), structure, motions, received, positions)
+        particles = state.particles
         if structure.update == "musl":
             velocity_new = jax.named_call(remap_velocity, name="remap_velocity")(
-                particles, stencil, layout, structure.boundaries, mass, constrain, floor
+                particles, stencil, field, structure, nodes.mass, constrain, floor
             )
-        gradient = velocity_gradient(stencil, velocity_new)
+        gradient = velocity_gradient(stencil, velocity_new, field, layout)
         if structure.transfer == "apic":
             particles = particles.replace(affine=gradient[:, :2, :2])
         particles = jax.named_call(update_stress, name="update_stress")(
-            params, particles, gradient, structure.bodies, dt
+            params["materials"], particles, gradient, structure.bodies, dt
         )
-        return record_errors(particles, layout.outside(particles.x))
+        state = record_errors(state.replace(particles=particles), layout.outside(particles.x))
+        return state, Diagnostics(contact_forces(structure, impulses, dt), reactions)
 
     return step

@@ -1,4 +1,10 @@
-"""The state carried from step to step: per-point arrays, bodies in contiguous slices."""
+"""The state carried from step to step, and the diagnostics each step reports.
+
+`State` holds the material points (bodies in contiguous slices), the motion of each rigid
+body, the step counter and the error bits. `Diagnostics` holds what a step computed on the
+grid that probes read and the points do not keep: the contact force of every pair and the
+force that keeps every prescribed body on its path.
+"""
 
 import dataclasses
 
@@ -23,9 +29,6 @@ class Particles:
       mass: (N,) mass [kg/m].
       history: tuple, one dict per body of (n_body,) history variables of its material.
       flags: (N,) int32 error bits (LEFT_GRID, NON_FINITE); errors inside jit are data.
-      step: () int32 steps taken.
-      error_step: () int32 first step at which any flag was raised, -1 if none.
-      error_point: () int32 a point flagged at that first step (the lowest index), -1 if none.
     """
 
     x: jax.Array
@@ -36,12 +39,70 @@ class Particles:
     mass: jax.Array
     history: tuple
     flags: jax.Array
+
+    def replace(self, **changes):
+        return dataclasses.replace(self, **changes)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class RigidMotion:
+    """The motion of one rigid body (plane strain: per metre of thickness).
+
+    Attributes:
+      translation: (2,) displacement of its centre of mass since t = 0 [m].
+      rotation: () angle turned since t = 0, counter-clockwise positive [rad].
+      velocity: (2,) velocity of its centre of mass [m/s].
+      spin: () angular velocity, counter-clockwise positive [rad/s].
+    """
+
+    translation: jax.Array
+    rotation: jax.Array
+    velocity: jax.Array
+    spin: jax.Array
+
+    def replace(self, **changes):
+        return dataclasses.replace(self, **changes)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class State:
+    """Everything that changes from step to step.
+
+    Attributes:
+      particles: the material points (`Particles`).
+      rigid: {body name: RigidMotion} of the scene's rigid bodies (empty without).
+      step: () int32 steps taken; the time is step * dt.
+      error_step: () int32 first step at which any point's flag was raised, -1 if none.
+      error_point: () int32 a point flagged at that first step (the lowest index), -1 if none.
+    """
+
+    particles: Particles
+    rigid: dict
     step: jax.Array
     error_step: jax.Array
     error_point: jax.Array
 
     def replace(self, **changes):
         return dataclasses.replace(self, **changes)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Diagnostics:
+    """What one step computed on the grid for the probes (plane strain: N per m).
+
+    Attributes:
+      contact_force: {pair name "first/second": (2,) force of the first body on the second
+        through their contact in this step [N/m]}.
+      reaction: {prescribed body name: (2,) force that kept it on its path in this step, i.e.
+        its rate of change of momentum minus its weight and the forces of the bodies around
+        it [N/m]}.
+    """
+
+    contact_force: dict
+    reaction: dict
 
 
 def counters_at_start():
@@ -53,19 +114,20 @@ def counters_at_start():
     }
 
 
-def record_errors(particles, outside):
-    """Raise the error bits of points that left the grid or went non-finite."""
+def record_errors(state, outside):
+    """Raise the error bits of points that left the grid or went non-finite; count the step."""
+    particles = state.particles
     finite = (
         jnp.all(jnp.isfinite(particles.x), axis=1)
         & jnp.all(jnp.isfinite(particles.v), axis=1)
         & jnp.all(jnp.isfinite(particles.stress), axis=(1, 2))
     )
     flags = particles.flags | jnp.where(outside, LEFT_GRID, 0) | jnp.where(finite, 0, NON_FINITE)
-    step = particles.step + 1
-    first = (particles.error_step < 0) & jnp.any(flags != 0)
-    return particles.replace(
-        flags=flags,
+    step = state.step + 1
+    first = (state.error_step < 0) & jnp.any(flags != 0)
+    return state.replace(
+        particles=particles.replace(flags=flags),
         step=step,
-        error_step=jnp.where(first, step, particles.error_step),
-        error_point=jnp.where(first, jnp.argmax(flags != 0).astype(jnp.int32), particles.error_point),
+        error_step=jnp.where(first, step, state.error_step),
+        error_point=jnp.where(first, jnp.argmax(flags != 0).astype(jnp.int32), state.error_point),
     )

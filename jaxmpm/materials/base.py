@@ -1,7 +1,9 @@
 """The interface every material model shares, and the checks its inputs go through.
 
 A material is a frozen dataclass holding what the scene file says (SI units, angles in
-degrees). Its fields split in two:
+degrees). What the solver compiles is its `law`: a small frozen object holding only the static
+options, whose `update` reads every physical value from `params`, so no parameter value is ever
+part of the compiled structure. The material's fields split in two:
 - `option_names`: static string choices (e.g. the Drucker-Prager cone) that decide which code
   is compiled; changing one recompiles. Whether an optional number is given at all (e.g.
   `fluidity`) is static too;
@@ -9,10 +11,11 @@ degrees). Its fields split in two:
   `update` in a `params` dict so that `jax.grad` and `jax.vmap` act on them without
   recompiling.
 
-`update(params, stress, L, dt, state) -> (stress, state)` is written for ONE material point
+`law.update(params, stress, L, dt, state) -> (stress, state)` is written for ONE material point
 (3x3 stress, 3x3 velocity gradient L_ij = dv_i/dx_j) and vmapped by the solver. It must read
 physical values only from `params`, never from `self`, or they would be baked into the
-compiled code.
+compiled code. `Material` gives every material the law's `update`, `init_state` and
+`wave_speed` as its own methods, for `drive` and for direct use.
 """
 
 import dataclasses
@@ -54,3 +57,16 @@ def number_fields(cls):
 def material_parameters(material):
     """The dynamic parameter dict {name: value} of a material (the leaf of `sim.params`)."""
     return {name: getattr(material, name) for name in material.parameter_names}
+
+
+class Material:
+    """The law's methods on the material itself (subclasses define `law`)."""
+
+    def update(self, params, stress, velocity_gradient, dt, state):
+        return self.law.update(params, stress, velocity_gradient, dt, state)
+
+    def init_state(self, count, dtype):
+        return self.law.init_state(count, dtype)
+
+    def wave_speed(self, params):
+        return self.law.wave_speed(params)

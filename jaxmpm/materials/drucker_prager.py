@@ -34,7 +34,7 @@ import jax.numpy as jnp
 
 from jaxmpm import tensors
 from jaxmpm.errors import SceneError
-from jaxmpm.materials.base import check_range, is_concrete
+from jaxmpm.materials.base import Material, check_range, is_concrete
 from jaxmpm.materials.linear_elastic import bulk_and_shear_moduli, elastic_trial, p_wave_speed
 
 CONES = {
@@ -88,7 +88,7 @@ def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate,
 
 
 @dataclasses.dataclass(frozen=True)
-class DruckerPrager:
+class DruckerPrager(Material):
     """Non-cohesive Drucker-Prager sand (see the module docstring for the equations).
 
     Attributes:
@@ -144,6 +144,22 @@ class DruckerPrager:
                 f"{where}.exponent = {self.exponent!r} is given without fluidity: give "
                 "fluidity (1/s) for the viscoplastic model, or remove exponent."
             )
+
+    @property
+    def law(self):
+        """The static constitutive law (what the solver compiles; values come from params)."""
+        return DruckerPragerLaw(self.cone, self.viscoplastic)
+
+
+@dataclasses.dataclass(frozen=True)
+class DruckerPragerLaw:
+    """The static side of `DruckerPrager`: the cone and whether the Perzyna solve exists.
+
+    Changing either recompiles; every value (phi, E, gamma, N, ...) comes from `params`.
+    """
+
+    cone: str = "paper"
+    viscoplastic: bool = False
 
     def init_state(self, count, dtype):
         return {"plastic_strain": jnp.zeros((count,), dtype)}

@@ -10,7 +10,7 @@ from typing import ClassVar
 import jax.numpy as jnp
 
 from jaxmpm import tensors
-from jaxmpm.materials.base import check_range
+from jaxmpm.materials.base import Material, check_range
 
 
 def bulk_and_shear_moduli(young, poisson):
@@ -42,7 +42,23 @@ def p_wave_speed(params):
 
 
 @dataclasses.dataclass(frozen=True)
-class LinearElastic:
+class ElasticLaw:
+    """The static side of `LinearElastic`: no options, so one compiled update for every value."""
+
+    def init_state(self, count, dtype):
+        """History variables: only the accumulated plastic strain (always zero here)."""
+        return {"plastic_strain": jnp.zeros((count,), dtype)}
+
+    def update(self, params, stress, velocity_gradient, dt, state):
+        """One point: rotate sigma with the step's spin, add the elastic increment."""
+        return elastic_trial(params, stress, velocity_gradient, dt), state
+
+    def wave_speed(self, params):
+        return p_wave_speed(params)
+
+
+@dataclasses.dataclass(frozen=True)
+class LinearElastic(Material):
     """An isotropic hypoelastic material.
 
     Attributes:
@@ -64,13 +80,7 @@ class LinearElastic:
         check_range(f"{where}.young", self.young, low=0.0)
         check_range(f"{where}.poisson", self.poisson, low=-1.0, high=0.5)
 
-    def init_state(self, count, dtype):
-        """History variables: only the accumulated plastic strain (always zero here)."""
-        return {"plastic_strain": jnp.zeros((count,), dtype)}
-
-    def update(self, params, stress, velocity_gradient, dt, state):
-        """One point: rotate sigma with the step's spin, add the elastic increment."""
-        return elastic_trial(params, stress, velocity_gradient, dt), state
-
-    def wave_speed(self, params):
-        return p_wave_speed(params)
+    @property
+    def law(self):
+        """The static constitutive law (what the solver compiles; values come from params)."""
+        return ElasticLaw()

@@ -1,0 +1,123 @@
+"""Multi-velocity-field contact on the grid (Bardenhagen et al. 2001, J. Comput. Phys.).
+
+Bodies named in a `[[contacts]]` pair, and prescribed and rigid bodies, each carry their own
+velocity field on the grid; all other bodies share one field (no slip among them). Where two
+fields both have mass at a node, their trial velocities v_a, v_b (after M a = F) are corrected
+once per step by an impulse J on a and -J on b, so momentum is kept exactly:
+
+  interface  a declared contact pair       or two fields that are not paired (bonded)
+  normal     n = (grad m_b - grad m_a) / |...|, from a into b
+  approach   c = (v_a - v_b) . n; only c > 0 (closing) is corrected, so bodies separate freely
+  relative   dv = -c n - t min(1, mu c / |t|), t = (v_a - v_b) - c n   (Coulomb: stick while
+             |t| <= mu c, else slide with a tangential change mu c)   | bonded: dv = -(v_a - v_b)
+  impulse    J = m_r dv, m_r = m_a m_b / (m_a + m_b) for two free fields; m_r = m_a (or m_b) when
+             b (or a) is prescribed or rigid: such a field acts as infinitely heavy, keeps its
+             velocity, and the impulse it receives is reported (reaction, rigid-body motion).
+
+The normal is the difference of the two mass gradients, i.e. the mean of the two bodies' own
+outward normals weighted by how sharply each is resolved at the node. It is symmetric
+(n_ab = -n_ba), so the two fields always get equal and opposite impulses; either body's
+gradient alone is biased where that body is thin or only partly covers the node's support
+(Nairn 2013, Comput. Model. Eng. Sci. 92, discusses the choices). Contact is detected
+where both fields have mass at a node, i.e. up to about one cell before the bodies touch
+(the supports of their shape functions overlap); docs/contact.md measures that gap.
+
+Every division and norm is guarded (double `where`): values and gradients are finite at
+empty nodes, zero normals and zero tangential velocity.
+"""
+
+import dataclasses
+
+import jax.numpy as jnp
+
+
+@dataclasses.dataclass(frozen=True)
+class Interface:
+    """Two velocity fields that meet on the grid (static).
+
+    first, second: field indices; contact: the pair's name "body/body" for a declared contact
+    (frictional), None for bonded fields (no slip); kinematic_first / kinematic_second: whether
+    that field is a prescribed or rigid body (then it keeps its own velocity)."""
+
+    first: int
+    second: int
+    contact: str | None
+    kinematic_first: bool = False
+    kinematic_second: bool = False
+
+
+def safe_norm(vectors):
+    """|v| over the last axis (length 2), with a zero (not NaN) gradient at v = 0."""
+    squares = vectors[..., 0] * vectors[..., 0] + vectors[..., 1] * vectors[..., 1]
+    positive = squares > 0.0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, squares, 1.0)), 0.0)
+
+
+def unit_normals(gradient_first, gradient_second):
+    """n = (grad m_b - grad m_a) / |grad m_b - grad m_a| at each node, (..., 2); zero where the
+    difference vanishes."""
+    direction = gradient_second - gradient_first
+    length = safe_norm(direction)
+    return direction / jnp.where(length > 0.0, length, 1.0)[..., None]
+
+
+def contact_velocity_change(relative, normal, friction):
+    """The change of v_a - v_b that contact with Coulomb friction makes at each node, (..., 2).
+
+    relative: v_a - v_b (..., 2); normal: unit normal from a into b (..., 2); friction: mu.
+    Zero where the fields separate (c <= 0)."""
+    approach = relative[..., 0] * normal[..., 0] + relative[..., 1] * normal[..., 1]
+    closing = approach > 0.0
+    approach = jnp.where(closing, approach, 0.0)
+    tangential = relative - approach[..., None] * normal
+    slip_speed = safe_norm(tangential)
+    limit = friction * approach
+    sliding = slip_speed > limit                 # then slip_speed > 0: the division is safe
+    kept = jnp.where(sliding, limit / jnp.where(sliding, slip_speed, 1.0), 1.0)
+    change = -approach[..., None] * normal - kept[..., None] * tangential
+    return jnp.where(closing[..., None], change, 0.0)
+
+
+def interface_impulse(interface, mass, velocity, normal, friction, occupied):
+    """Impulse J on field `first` (and -J on `second`) at each node, (nx, ny, 2).
+
+    mass: (F, nx, ny); velocity: (F, nx, ny, 2) trial velocities; normal: (nx, ny, 2) from
+    first into second (None for a bonded interface); occupied: (F, nx, ny) bool."""
+    a, b = interface.first, interface.second
+    relative = velocity[a] - velocity[b]
+    if interface.contact is None:
+        change = -relative
+    else:
+        change = contact_velocity_change(relative, normal, friction)
+    if interface.kinematic_second:
+        reduced = mass[a]
+    elif interface.kinematic_first:
+        reduced = mass[b]
+    else:
+        total = mass[a] + mass[b]
+        both = occupied[a] & occupied[b]
+        reduced = mass[a] * mass[b] / jnp.where(both, total, 1.0)
+    both = occupied[a] & occupied[b]
+    return jnp.where(both[..., None], reduced[..., None] * change, 0.0)
+
+
+def resolve_interfaces(interfaces, mass, velocity, mass_gradient, frictions, occupied):
+    """Apply every interface's impulse in turn to the free fields' velocities.
+
+    Returns (velocity (F, nx, ny, 2), impulses): impulses[k] (nx, ny, 2) is the impulse on the
+    `first` field of interfaces[k] (its `second` field received minus it). Prescribed and rigid
+    fields keep their velocities; what they receive is read from the impulses."""
+    impulses = []
+    safe_mass = jnp.where(occupied, mass, 1.0)[..., None]
+    for interface in interfaces:
+        normal = None
+        if interface.contact is not None:
+            normal = unit_normals(mass_gradient[interface.first], mass_gradient[interface.second])
+        friction = frictions.get(interface.contact)
+        impulse = interface_impulse(interface, mass, velocity, normal, friction, occupied)
+        if not interface.kinematic_first:
+            velocity = velocity.at[interface.first].add(impulse / safe_mass[interface.first])
+        if not interface.kinematic_second:
+            velocity = velocity.at[interface.second].add(-impulse / safe_mass[interface.second])
+        impulses.append(impulse)
+    return velocity, impulses
