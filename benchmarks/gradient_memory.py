@@ -36,7 +36,7 @@ def temporary_megabytes(steps, checkpointing):
     sim = jaxmpm.Simulation(block_scene(50, "float64", steps), checkpointing)
 
     def loss(young):
-        probes = sim.probes({"block": dict(sim.params["block"], young=young)})
+        probes = sim.probes(jaxmpm.with_values(sim.params, {"block.young": young}))
         return jax.numpy.sum(probes["top"]) + jax.numpy.sum(probes["centre_of_mass"])
 
     compiled = jax.jit(jax.grad(loss)).lower(1.0e6).compile()

@@ -28,7 +28,7 @@ def main():
     parser.add_argument("--max-iterations", type=int, default=40)
     arguments = parser.parse_args()
     sim = jaxmpm.Simulation(jaxmpm.load_scene(HERE / "calibrate_twin_scene.toml"))
-    truth = {name: sim.params["sand"][name.split(".")[1]] for name in FIT}
+    truth = {name: sim.params["materials"]["sand"][name.split(".")[1]] for name in FIT}
     print("| noise [m] | parameter | truth | recovered | error | std. error | error / std. error | iterations | simulations | wall [s] |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for noise in arguments.levels:

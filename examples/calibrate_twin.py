@@ -50,7 +50,7 @@ def main():
     arguments = parser.parse_args()
 
     sim = jaxmpm.Simulation(jaxmpm.load_scene(HERE / "calibrate_twin_scene.toml"))
-    truth = {name: sim.params["sand"][name.split(".")[1]] for name in FIT}
+    truth = {name: sim.params["materials"]["sand"][name.split(".")[1]] for name in FIT}
     observations = twin_observations(sim, arguments.noise)
     if arguments.write_observations:
         observations.to_csv(arguments.write_observations)

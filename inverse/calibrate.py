@@ -51,8 +51,7 @@ def observation_data(sim, observations: Observations):
 
 def check_observations(sim, observations: Observations):
     """SceneError unless every channel names a probe component of the scene inside its time."""
-    initial = sim.initial_state()
-    probe_widths = {name: value.shape[0] for name, value in sim.observe(initial, initial.x).items()}
+    probe_widths = {name: value.shape[0] for name, value in sim.observe_start(sim.initial_state()).items()}
     check_against(observations, probe_widths, (float(sim.time[0]), float(sim.time[-1])))
     for name, channel in observations.channels.items():
         for component in channel.components:
@@ -64,18 +63,19 @@ def check_stable_over_bounds(sim, space: ParameterSpace):
     """SceneError if the bounds let a fitted modulus, Poisson's ratio or density reach values for
     which the scene's fixed time step would be unstable (c_p grows with E and nu, falls with rho)."""
     extremes = {"young": "high", "poisson": "high", "density": "low"}
-    for material_name, material in sim.scene.materials.items():
-        values = dict(sim.params[material_name])
-        for entry in space.entries:
-            owner, _, key = entry.path.partition(".")
-            if owner != material_name or key not in extremes:
+    materials = sim.params["materials"]
+    for material_name in materials:
+        values = dict(materials[material_name])
+        for entry, (namespace, owner, key) in zip(space.entries, space.locations):
+            if namespace != "materials" or owner != material_name or key not in extremes:
                 continue
             bound = getattr(entry, extremes[key])
             if bound is None:
                 raise SceneError(f"fit.{entry.path} needs a {extremes[key]} bound: the time step is fixed "
                                  "from the scene, and an unbounded value could make it unstable.")
             values[key] = bound
-        limit = sim.material_time_steps({**sim.params, material_name: values}).get(material_name, float("inf"))
+        extreme = {**sim.params, "materials": {**materials, material_name: values}}
+        limit = sim.material_time_steps(extreme).get(material_name, float("inf"))
         if sim.dt > limit * (1.0 + STEP_SLACK):
             raise SceneError(
                 f"fit bounds allow material {material_name!r} values that need a time step below "

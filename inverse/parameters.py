@@ -1,7 +1,8 @@
 """The parameters being fitted, and the unconstrained coordinates the optimiser works in.
 
-A fitted parameter is named by its path in `sim.params`, e.g. "sand.friction_angle". Bounds
-decide the transform (SPEC section 5):
+A fitted parameter is named by its dotted name in `sim.params` ("sand.friction_angle",
+"materials.sand.friction_angle", "contacts.backfill/wall.friction"; see `jaxmpm.parameters`)
+and keeps the name it was given in the results. Bounds decide the transform:
   (low, high)   scaled logit:  x = low + (high - low) sigmoid(z)
   (low, None)   log shift:     x = low + exp(z)          (e.g. (0, None) for a positive value)
   (None, high)  log shift:     x = high - exp(z)
@@ -12,7 +13,6 @@ Everything not named stays at its value in the simulation's parameters.
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import math
 
 import jax
@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmpm.errors import SceneError
+from jaxmpm.parameters import resolve, with_values
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,18 +52,6 @@ class Bounded:
         return z
 
 
-def flat_parameters(params, prefix=""):
-    """{"sand.friction_angle": value, ...} from a nested parameter dict."""
-    flat = {}
-    for key, value in params.items():
-        path = f"{prefix}{key}"
-        if isinstance(value, dict):
-            flat.update(flat_parameters(value, path + "."))
-        else:
-            flat[path] = value
-    return flat
-
-
 def _bounds(path, spec):
     """(low, high, start) from (low, high) or {"low": .., "high": .., "start": ..}."""
     start = None
@@ -87,18 +76,25 @@ class ParameterSpace:
     """The fitted subset of a simulation's parameters, with transforms to unconstrained z."""
 
     def __init__(self, params, fit: dict):
-        flat = flat_parameters(params)
         if not fit:
             raise SceneError("fit is empty: name at least one parameter, e.g. 'sand.friction_angle'.")
         self.template = params
         self.entries = []
+        self.locations = []      # (namespace, owner, key) of each entry in the parameter pytree
         for path, spec in fit.items():
-            if path not in flat:
-                hint = difflib.get_close_matches(path, list(flat), n=1)
-                suggestion = f" (did you mean {hint[0]!r}?)" if hint else f" (known: {', '.join(flat)})"
-                raise SceneError(f"fit names {path!r}, which is not a parameter of the scene{suggestion}.")
+            try:
+                location = resolve(params, path)
+            except SceneError as error:
+                raise SceneError(f"fit: {error}") from None
+            if location in self.locations:
+                raise SceneError(f"fit names {path!r} twice (as {'.'.join(location)}).")
+            namespace, owner, key = location
+            value = np.asarray(params[namespace][owner][key])
+            if value.shape != ():
+                raise SceneError(f"fit names {path!r}, which is not a single number (shape {value.shape}).")
+            self.locations.append(location)
             low, high, start = _bounds(path, spec)
-            start = float(flat[path]) if start is None else float(start)
+            start = float(value) if start is None else float(start)
             inside = (low is None or start > low) and (high is None or start < high)
             if not inside:
                 raise SceneError(
@@ -124,15 +120,7 @@ class ParameterSpace:
     def insert(self, values, params=None):
         """A copy of the parameter pytree with the fitted values replaced (differentiable)."""
         params = self.template if params is None else params
-        result = jax.tree_util.tree_map(lambda leaf: leaf, params)   # fresh containers
-        for index, entry in enumerate(self.entries):
-            table = result
-            *parents, leaf = entry.path.split(".")
-            for key in parents:
-                table[key] = dict(table[key])
-                table = table[key]
-            table[leaf] = values[index]
-        return result
+        return with_values(params, {".".join(location): values[index] for index, location in enumerate(self.locations)})
 
     def random_values(self, count, seed):
         """`count` start vectors drawn uniformly inside the bounds (1-99 % of the range;

@@ -1,7 +1,7 @@
 """jaxmpm: a differentiable Material Point Method for soil mechanics, in JAX.
 
-Public names (SPEC section 4): load_scene, Scene, simulate, Simulation, Result, drive,
-Checkpointing, SceneError, SimulationError, and the material classes.
+Public names: load_scene, Scene (and its parts), simulate, Simulation, Result, drive,
+Checkpointing, with_values, SceneError, SimulationError, and the material classes.
 """
 
 __version__ = "0.1.0"
@@ -10,17 +10,22 @@ from jaxmpm.driver import drive
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.materials import DruckerPrager, LinearElastic
 from jaxmpm.results import Result
+from jaxmpm.parameters import with_values
 from jaxmpm.rollout import Checkpointing
-from jaxmpm.scene import Body, Boundaries, Geostatic, Grid, Numerics, Polygon, Probe, Rectangle, Scene, load_scene
+from jaxmpm.scene import (
+    Body, Boundaries, Contact, Geostatic, Grid, Kinematics, Numerics, Polygon, Probe, Rectangle, Scene, load_scene,
+)
 from jaxmpm.simulation import Simulation, simulate
 
 __all__ = [
     "Body",
     "Boundaries",
     "Checkpointing",
+    "Contact",
     "DruckerPrager",
     "Geostatic",
     "Grid",
+    "Kinematics",
     "LinearElastic",
     "Numerics",
     "Polygon",
@@ -34,4 +39,5 @@ __all__ = [
     "drive",
     "load_scene",
     "simulate",
+    "with_values",
 ]

@@ -6,7 +6,9 @@ fields both have mass at a node, their trial velocities v_a, v_b (after M a = F)
 once per step by an impulse J on a and -J on b, so momentum is kept exactly:
 
   interface  a declared contact pair       or two fields that are not paired (bonded)
-  normal     n = (grad m_b - grad m_a) / |...|, from a into b
+  normal     n = (m_a g_a/|g_a| - m_b g_b/|g_b|) / |...|, from a into b, with the outward mass
+             gradient g = sum_p m_p grad N_I(x_p) of each field (the derivative with respect
+             to the point, so g points out of the body)
   approach   c = (v_a - v_b) . n; only c > 0 (closing) is corrected, so bodies separate freely
   relative   dv = -c n - t min(1, mu c / |t|), t = (v_a - v_b) - c n   (Coulomb: stick while
              |t| <= mu c, else slide with a tangential change mu c)   | bonded: dv = -(v_a - v_b)
@@ -14,13 +16,18 @@ once per step by an impulse J on a and -J on b, so momentum is kept exactly:
              b (or a) is prescribed or rigid: such a field acts as infinitely heavy, keeps its
              velocity, and the impulse it receives is reported (reaction, rigid-body motion).
 
-The normal is the difference of the two mass gradients, i.e. the mean of the two bodies' own
-outward normals weighted by how sharply each is resolved at the node. It is symmetric
-(n_ab = -n_ba), so the two fields always get equal and opposite impulses; either body's
-gradient alone is biased where that body is thin or only partly covers the node's support
-(Nairn 2013, Comput. Model. Eng. Sci. 92, discusses the choices). Contact is detected
-where both fields have mass at a node, i.e. up to about one cell before the bodies touch
-(the supports of their shape functions overlap); docs/contact.md measures that gap.
+Normals. Against a prescribed or rigid body, the normal is that body's own (its surface is
+known to the resolution of its points and does not deform). Between two free bodies it is the
+mean of their own outward normals, each weighted by its field's mass at the node: where one
+body only grazes a node (a corner, a thin edge, a body just arriving) its normal is poorly
+resolved and its mass there is small, so the well-covered body's normal decides. Both choices
+are antisymmetric (n_ab = -n_ba), so the two fields always get equal and opposite impulses.
+With the plain difference g_a - g_b (or the mass-weighted mean against a held slab), a block
+sliding on a flat slab with mu = 0 met the slab's normal tilted at its leading corner, lost
+7-8 % of its acceleration g sin(theta) and climbed (Nairn 2013, Comput. Model. Eng. Sci. 92,
+compares normal choices; docs/contact.md gives our measurements). Contact is detected where
+both fields have mass at a node, i.e. up to about one cell before the bodies touch (the
+supports of their shape functions overlap); docs/contact.md measures that gap.
 
 Every division and norm is guarded (double `where`): values and gradients are finite at
 empty nodes, zero normals and zero tangential velocity.
@@ -53,12 +60,16 @@ def safe_norm(vectors):
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, squares, 1.0)), 0.0)
 
 
-def unit_normals(gradient_first, gradient_second):
-    """n = (grad m_b - grad m_a) / |grad m_b - grad m_a| at each node, (..., 2); zero where the
-    difference vanishes."""
-    direction = gradient_second - gradient_first
-    length = safe_norm(direction)
-    return direction / jnp.where(length > 0.0, length, 1.0)[..., None]
+def unit(vectors):
+    """v / |v| over the last axis, zero where v = 0 (finite value and gradient)."""
+    length = safe_norm(vectors)
+    return vectors / jnp.where(length > 0.0, length, 1.0)[..., None]
+
+
+def contact_normals(mass_first, gradient_first, mass_second, gradient_second):
+    """Unit normals from a into b at each node, (..., 2): the mass-weighted mean of a's outward
+    normal and b's inward one, m_a g_a/|g_a| - m_b g_b/|g_b| normalised (zero where it vanishes)."""
+    return unit(mass_first[..., None] * unit(gradient_first) - mass_second[..., None] * unit(gradient_second))
 
 
 def contact_velocity_change(relative, normal, friction):
@@ -76,6 +87,17 @@ def contact_velocity_change(relative, normal, friction):
     kept = jnp.where(sliding, limit / jnp.where(sliding, slip_speed, 1.0), 1.0)
     change = -approach[..., None] * normal - kept[..., None] * tangential
     return jnp.where(closing[..., None], change, 0.0)
+
+
+def interface_normals(interface, mass, mass_gradient):
+    """Unit normals from `first` into `second` at each node, (nx, ny, 2): the prescribed or
+    rigid body's own normal when one side is such a body, else `contact_normals`."""
+    a, b = interface.first, interface.second
+    if interface.kinematic_second:
+        return -unit(mass_gradient[b])
+    if interface.kinematic_first:
+        return unit(mass_gradient[a])
+    return contact_normals(mass[a], mass_gradient[a], mass[b], mass_gradient[b])
 
 
 def interface_impulse(interface, mass, velocity, normal, friction, occupied):
@@ -112,7 +134,7 @@ def resolve_interfaces(interfaces, mass, velocity, mass_gradient, frictions, occ
     for interface in interfaces:
         normal = None
         if interface.contact is not None:
-            normal = unit_normals(mass_gradient[interface.first], mass_gradient[interface.second])
+            normal = interface_normals(interface, mass, mass_gradient)
         friction = frictions.get(interface.contact)
         impulse = interface_impulse(interface, mass, velocity, normal, friction, occupied)
         if not interface.kinematic_first:

@@ -88,10 +88,12 @@ def resolve(params: dict, name: str) -> tuple[str, str, str]:
 
 
 def with_values(params: dict, values: dict) -> dict:
-    """A copy of `params` with {path (namespace, owner, key): value} replaced (differentiable:
-    the values may be traced)."""
+    """A copy of `params` with {dotted name: value} replaced, e.g.
+    with_values(sim.params, {"sand.friction_angle": phi}) (differentiable: the values may be
+    traced). SceneError if a name is not a parameter."""
     result = jax.tree_util.tree_map(lambda leaf: leaf, params)      # fresh containers
-    for (namespace, owner, key), value in values.items():
+    for name, value in values.items():
+        namespace, owner, key = resolve(params, name)
         result[namespace] = dict(result[namespace])
         result[namespace][owner] = dict(result[namespace][owner], **{key: value})
     return result

@@ -130,7 +130,7 @@ def combine_on_stencil(terms):
 
 class Nodes(NamedTuple):
     """Grid values of every velocity field: mass (F, nx, ny) [kg/m]; momentum, force
-    (F, nx, ny, 2); mass_gradient (F, nx, ny, 2) [kg/m^2 per m] (None without contact pairs)."""
+    (F, nx, ny, 2); mass_gradient (F, nx, ny, 2) sum_p m_p grad N_I(x_p), pointing out of the body [kg/m^2] (None without contact pairs)."""
 
     mass: jax.Array
     momentum: jax.Array
