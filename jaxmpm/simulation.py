@@ -224,7 +224,7 @@ class Simulation:
             histories.append(block.law.init_state(size, dtype))
             if block.kinematics == "rigid":
                 zero = jnp.zeros((), dtype)
-                rigid[block.name] = RigidMotion(jnp.zeros(2, dtype), zero, velocity, zero)
+                rigid[block.name] = RigidMotion(jnp.zeros(2, dtype), zero, velocity, zero, jnp.zeros(2, dtype), zero)
         particles = Particles(
             x=jnp.asarray(self.seeds.positions, dtype),
             v=jnp.concatenate(velocities),

@@ -103,6 +103,10 @@ class Structure:
     point_spacing: float = 0.0
 
     @property
+    def has_kinematic_bodies(self):
+        return any(block.kinematics != "free" for block in self.bodies)
+
+    @property
     def has_contact(self):
         return any(interface.contact is not None for interface in self.interfaces)
 
@@ -233,21 +237,31 @@ def spin_velocity(spin, arm):
 
 
 def kinematic_motions(params, state, structure, time_new):
-    """The velocity each prescribed and rigid body takes in this step, before contact.
+    """The velocity each prescribed and rigid body takes in this step's contact.
 
-    Returns {body: (kind, data)}: prescribed -> (velocity now (2,), velocity after the step (2,));
-    rigid -> (M, c, J, V*, omega) with V* = V + dt g, its velocity if nothing touched it."""
+    Returns {body: motion}: prescribed -> (velocity now (2,), velocity after the step (2,));
+    rigid -> (M, c, J, V_free, V_contact, omega_contact): V_free = V + dt g is its velocity
+    if nothing touched it; the bodies around it meet V_contact = V_free + dt F / M and
+    omega_contact = omega + dt T / J, with the force F and torque T of the last step. This
+    predictor makes the nodes of a body resting on another move exactly with it once the
+    force is steady; meeting V_free instead left a gap of g dt^2 per step between a resting
+    rigid footing and the sand under it (0.3 mm in 0.3 s), with the contact still active.
+    """
     dtype = state.particles.x.dtype
     gravity = jnp.asarray(structure.gravity, dtype)
+    dt = structure.dt
     motions = {}
     for block in structure.blocks_of("prescribed"):
         velocity = params["bodies"][block.name]["velocity"]
-        before = prescribed_velocity(block, velocity, time_new - structure.dt)
+        before = prescribed_velocity(block, velocity, time_new - dt)
         motions[block.name] = (before, prescribed_velocity(block, velocity, time_new))
     for block in structure.blocks_of("rigid"):
         mass, centre, inertia = rigid_body_frame(state.particles, block, structure.point_spacing)
         motion = state.rigid[block.name]
-        motions[block.name] = (mass, centre, inertia, motion.velocity + structure.dt * gravity, motion.spin)
+        free = motion.velocity + dt * gravity
+        motions[block.name] = (
+            mass, centre, inertia, free, free + dt * motion.force / mass, motion.spin + dt * motion.torque / inertia
+        )
     return motions
 
 
@@ -257,7 +271,7 @@ def impose_kinematic_fields(velocity, structure, motions, positions):
     for block in structure.blocks_of("prescribed"):
         velocity = velocity.at[block.field].set(jnp.broadcast_to(motions[block.name][1], velocity.shape[1:]))
     for block in structure.blocks_of("rigid"):
-        _, centre, _, translation, spin = motions[block.name]
+        _, centre, _, _, translation, spin = motions[block.name]
         velocity = velocity.at[block.field].set(translation + spin_velocity(spin, positions - centre))
     return velocity
 
@@ -288,9 +302,10 @@ def grid_to_particles(particles, stencil, velocity_old, velocity_new, field, tra
     return particles.replace(x=particles.x + dt * grid_velocity, v=velocity)
 
 
-def move_kinematic_bodies(state, structure, motions, received, positions):
-    """Prescribed points move at their velocity; rigid bodies take the impulses their fields
-    received (dV = sum J / M, d omega = sum (x_I - c) x J / J_c) and move as one body.
+def move_kinematic_bodies(state, start, structure, motions, received, positions):
+    """Prescribed points move at their velocity from their positions `start` (N, 2) at the
+    start of the step; rigid bodies take the impulses their fields received
+    (dV = sum J / M, d omega = sum (x_I - c) x J / J_c) and move as one body.
 
     Returns (state, reactions {prescribed body: (2,) force that kept it on its path})."""
     particles, dt = state.particles, structure.dt
@@ -304,24 +319,27 @@ def move_kinematic_bodies(state, structure, motions, received, positions):
         pushed = 0.0 if impulse is None else jnp.sum(impulse, axis=(0, 1))
         reactions[block.name] = mass * (after - before) / dt - mass * gravity - pushed / dt
         count = block.stop - block.start
-        x = x.at[block.points].add(dt * after)
+        x = x.at[block.points].set(start[block.points] + dt * after)
         v = v.at[block.points].set(jnp.broadcast_to(after, (count, 2)))
     for block in structure.blocks_of("rigid"):
-        mass, centre, inertia, translation, spin = motions[block.name]
+        mass, centre, inertia, translation, _, _ = motions[block.name]
+        motion = state.rigid[block.name]
         impulse = received.get(block.field)
+        force, torque = jnp.zeros_like(translation), jnp.zeros_like(motion.spin)
         if impulse is not None:
-            translation = translation + jnp.sum(impulse, axis=(0, 1)) / mass
-            spin = spin + jnp.sum(cross(positions - centre, impulse)) / inertia
+            force = jnp.sum(impulse, axis=(0, 1)) / dt
+            torque = jnp.sum(cross(positions - centre, impulse)) / dt
+        translation = translation + dt * force / mass
+        spin = motion.spin + dt * torque / inertia
         turn = dt * spin
         cos, sin = jnp.cos(turn), jnp.sin(turn)
-        arm = x[block.points] - centre
+        arm = start[block.points] - centre
         turned = jnp.stack([cos * arm[:, 0] - sin * arm[:, 1], sin * arm[:, 0] + cos * arm[:, 1]], axis=-1)
         x = x.at[block.points].set(centre + dt * translation + turned)
         v = v.at[block.points].set(translation + spin_velocity(spin, turned))
-        motion = state.rigid[block.name]
         rigid[block.name] = motion.replace(
             translation=motion.translation + dt * translation, rotation=motion.rotation + turn,
-            velocity=translation, spin=spin,
+            velocity=translation, spin=spin, force=force, torque=torque,
         )
     return state.replace(particles=particles.replace(x=x, v=v), rigid=rigid), reactions
 
@@ -403,21 +421,25 @@ def make_step(structure: Structure):
             nodes, dt, structure.damping, constrain, floor
         )
         impulses, received, motions, positions = [], {}, {}, None
-        if structure.fields > 1:
+        if structure.has_kinematic_bodies:
             time_new = (state.step + 1).astype(particles.x.dtype) * dt
             positions = node_positions(layout, particles.x.dtype)
             motions = kinematic_motions(params, state, structure, time_new)
             velocity_new = impose_kinematic_fields(velocity_new, structure, motions, positions)
+        if structure.interfaces:
             frictions = {name: values["friction"] for name, values in params.get("contacts", {}).items()}
             velocity_new, impulses = jax.named_call(resolve_interfaces, name="contact")(
                 structure.interfaces, nodes.mass, velocity_new, nodes.mass_gradient, frictions, nodes.mass > floor
             )
             velocity_new = constrain(velocity_new)
             received = received_impulses(structure, impulses)
+        start = particles.x
         particles = jax.named_call(grid_to_particles, name="grid_to_particles")(
             particles, stencil, velocity_old, velocity_new, field, structure.transfer, structure.flip, dt, layout
         )
-        state, reactions = move_kinematic_bodies(state.replace(particles=particles), structure, motions, received, positions)
+        state, reactions = move_kinematic_bodies(
+            state.replace(particles=particles), start, structure, motions, received, positions
+        )
         particles = state.particles
         if structure.update == "musl":
             velocity_new = jax.named_call(remap_velocity, name="remap_velocity")(
