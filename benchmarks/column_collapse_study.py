@@ -5,8 +5,8 @@
 
 Runs examples/column_collapse.toml (Bui et al. 2008; a = 0.5) with each combination and prints
 a markdown table of the runout (L - L0) / L0, the final height over the initial one and the
-wall time. Published scaling laws give 0.60-0.90 for this aspect ratio (VALIDATION.md
-section 6; docs/column_collapse.md). A study, not a test: the finest cells take minutes.
+wall time. Published scaling laws give 0.60-0.90 for this aspect ratio (Lube et al.
+2005, Lajeunesse et al. 2005; docs/column_collapse.md). A study, not a test: the finest cells take minutes.
 """
 
 from __future__ import annotations

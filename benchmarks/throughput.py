@@ -7,7 +7,7 @@
 The scene: a linear-elastic block (rho = 1000 kg/m^3, E = 1 MPa, nu = 0.3) resting on the fixed
 floor of a 1 m x 1 m box under gravity, linear shape functions, 2 x 2 points per cell, MUSL,
 FLIP 0.99, dt = 0.4 h / 40 m/s. Sizes: 10,000 points (0.5 m block, 100^2 cells) and 16,384 points
-(the 0.5 m block on the 128^2 grid of /work/shared/PERFORMANCE.md's table).
+(the 0.5 m block on the 128^2 grid of the CPU MPM comparison quoted in docs/benchmarks.md).
 
 Each (size, dtype) case runs in its own subprocess, so that its peak resident memory
 (getrusage maxrss) belongs to that case alone and float32 runs without JAX's 64-bit mode, as a
@@ -239,7 +239,7 @@ Drucker-Prager sand (phi = 30 deg, the paper's cone), which slumps under its own
 last rows: the material of PERFORMANCE.md's peers); linear shape functions (the last row:
 quadratic B-splines, as the peers used), 2 x 2 points per cell,
 MUSL, FLIP 0.99, dt = 0.4 h / (40 m/s); 10,000 points on a 100^2 grid, and 16,384 points on the
-128^2 grid of the comparison in /work/shared/PERFORMANCE.md (whose peers ran APIC/MLS with a
+128^2 grid of a comparison of CPU MPM codes (Numba, Taichi, Warp, JAX) measured on this machine kind (whose peers ran APIC/MLS with a
 Hencky-strain Drucker-Prager, a different step, so compare orders of magnitude, not digits).
 Forward throughput is
 points x {STEPS_PER_CALL} / wall time of one `Simulation._advance` call ({STEPS_PER_CALL} steps
