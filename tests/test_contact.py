@@ -18,12 +18,59 @@ import numpy as np
 import pytest
 import tomli_w
 
+from jaxmpm.contact import Interface, contact_normals, contact_velocity_change, resolve_interfaces
 from jaxmpm import (
     Body, Boundaries, Contact, DruckerPrager, Geostatic, Grid, Kinematics, LinearElastic, Numerics, Polygon, Probe,
     Rectangle, Scene, SceneError, Simulation, with_values,
 )
 
 G = 9.81
+
+
+# --------------------------------------------------------------------------- the nodal contact law
+
+
+def test_contact_law_on_nodes():
+    # Closing normal motion is removed; tangential motion kept below mu * closing speed,
+    # removed (stick) when it is below; separating nodes are left alone.
+    normal = jnp.asarray([[0.0, -1.0]] * 4)            # from a (above) into b (below)
+    relative = jnp.asarray([[0.5, -1.0], [0.2, -1.0], [0.5, 1.0], [0.0, 0.0]])
+    change = np.asarray(contact_velocity_change(relative, normal, 0.3))
+    np.testing.assert_allclose(change[0], [-0.3, 1.0])   # slides: tangential change mu * 1
+    np.testing.assert_allclose(change[1], [-0.2, 1.0])   # sticks: all relative motion removed
+    np.testing.assert_allclose(change[2:], 0.0)          # separating, at rest
+
+
+@pytest.mark.parametrize("relative", [[0.0, 0.0], [0.0, -1.0], [0.3, -1.0], [0.5, 1.0]])
+def test_contact_law_gradients_are_finite_at_its_kinks(relative):
+    # At rest, with zero tangential velocity, exactly at the stick/slip switch (|t| = mu c),
+    # and separating; also with a zero normal (an empty node): finite Jacobians.
+    for normal in ([0.0, -1.0], [0.0, 0.0]):
+        jacobian = jax.jacfwd(contact_velocity_change, argnums=(0, 1, 2))(
+            jnp.asarray(relative), jnp.asarray(normal), jnp.asarray(0.3)
+        )
+        assert all(bool(jnp.all(jnp.isfinite(part))) for part in jacobian)
+    gradients = jax.jacfwd(lambda g: contact_normals(jnp.asarray(1.0), g, jnp.asarray(2.0), jnp.zeros(2)))(jnp.zeros(2))
+    assert bool(jnp.all(jnp.isfinite(gradients)))
+
+
+def test_interfaces_keep_momentum_and_kinematic_velocities():
+    # Random node data: impulses are equal and opposite between free fields (total momentum
+    # kept to round-off), and a prescribed field's velocity is never changed.
+    rng = np.random.default_rng(0)
+    mass = jnp.asarray(rng.uniform(0.0, 1.0, (3, 6, 5)) * (rng.uniform(size=(3, 6, 5)) > 0.3))
+    velocity = jnp.asarray(rng.normal(size=(3, 6, 5, 2)))
+    gradient = jnp.asarray(rng.normal(size=(3, 6, 5, 2)))
+    occupied = mass > 0.0
+    interfaces = (Interface(0, 1, "a/b"), Interface(0, 2, None, kinematic_second=True), Interface(1, 2, "b/c", kinematic_second=True))
+    new, impulses = resolve_interfaces(interfaces[:1], mass, velocity, gradient, {"a/b": 0.4}, occupied)
+    momentum = lambda v: jnp.sum(mass[:2, ..., None] * v[:2], axis=(0, 1, 2))
+    np.testing.assert_allclose(momentum(new), momentum(velocity), atol=1e-13)
+    assert float(jnp.max(jnp.abs(impulses[0]))) > 0.0
+    new, _ = resolve_interfaces(interfaces, mass, velocity, gradient, {"a/b": 0.4, "b/c": 0.0}, occupied)
+    np.testing.assert_array_equal(np.asarray(new[2]), np.asarray(velocity[2]))
+    both = np.asarray(occupied[0] & occupied[2])       # bonded to a prescribed field: its velocity
+    np.testing.assert_allclose(np.asarray(new[0])[both], np.asarray(velocity[2])[both], atol=1e-13)
 
 
 # --------------------------------------------------------------------------- block on a slab
