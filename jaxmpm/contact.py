@@ -1,4 +1,4 @@
-"""Multi-velocity-field contact on the grid (Bardenhagen et al. 2001, J. Comput. Phys.).
+"""Multi-velocity-field contact on the grid (Bardenhagen et al. 2001, Comput. Model. Eng. Sci. 2).
 
 Bodies named in a `[[contacts]]` pair, and prescribed and rigid bodies, each carry their own
 velocity field on the grid; all other bodies share one field (no slip among them). Where two

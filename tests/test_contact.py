@@ -1,8 +1,8 @@
 """Soil-structure interaction: multi-field contact, prescribed and rigid bodies, their probes.
 
 Sources: sliding block, g (sin theta - mu cos theta) (Coulomb friction on an incline, any
-mechanics text; the classic MPM contact check of Bardenhagen et al. 2001, J. Comput. Phys.
-168); head-on discs (Bardenhagen et al. 2001, Sec. 4); active earth pressure, 1/2 K0 rho g H^2
+mechanics text; the classic MPM contact check of Bardenhagen et al. 2001, Comput. Model. Eng.
+Sci. 2); head-on discs (Bardenhagen et al. 2001); active earth pressure, 1/2 K0 rho g H^2
 before the wall moves and Rankine's 1/2 Ka rho g H^2, Ka = (1 - sin phi) / (1 + sin phi),
 after (Rankine 1857; Coulomb 1776 with wall friction); free fall x = x0 + g t^2 / 2.
 """
