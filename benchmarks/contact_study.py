@@ -11,7 +11,8 @@
 - gap: an elastic block moving down onto a held slab at 1 m/s without gravity: the distance
   between the two surfaces when the contact force first acts (grid contact sees the bodies
   about a cell early: their shape functions overlap before they touch).
-A study, not a test: it prints markdown tables.
+A study, not a test: it prints markdown tables and writes each into its section of
+docs/contact.md (between <!-- NAME:begin --> and <!-- NAME:end -->; --no-write to print only).
 """
 
 from __future__ import annotations
@@ -23,7 +24,25 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "contact.md"
 G = 9.81
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from throughput import write_section  # noqa: E402
+
+
+class Table:
+    """Markdown lines, printed as they come and kept for the docs section."""
+
+    def __init__(self):
+        self.lines = []
+
+    def __call__(self, line=""):
+        print(line, flush=True)
+        self.lines.append(line)
+
+    def text(self):
+        return "\n".join(self.lines).strip()
 
 
 def block_on_slab(cell, theta_degrees=0.0, friction=0.0, drop_speed=0.0, start_gap=0.0, duration=0.2):
@@ -51,12 +70,12 @@ def block_on_slab(cell, theta_degrees=0.0, friction=0.0, drop_speed=0.0, start_g
     )
 
 
-def slide_study(cells):
+def slide_study(cells, emit):
     import jaxmpm
     import numpy as np
 
-    print("\n| theta, mu | expected a [m/s^2] | " + " | ".join(f"cell {c:g} m" for c in cells) + " |")
-    print("|---|---:|" + "---:|" * len(cells))
+    emit("| theta, mu | expected a [m/s^2] | " + " | ".join(f"cell {c:g} m" for c in cells) + " |")
+    emit("|---|---:|" + "---:|" * len(cells))
     for theta, mu in [(30.0, 0.3), (30.0, 0.0), (40.0, 0.5)]:
         expected = G * (math.sin(math.radians(theta)) - mu * math.cos(math.radians(theta)))
         row = []
@@ -66,15 +85,15 @@ def slide_study(cells):
             start = len(sim.time) // 3
             measured = 2.0 * np.polyfit(sim.time[start:], x[start:], 2)[0]
             row.append(f"{measured:.4f} ({100 * (measured / expected - 1):+.2f} %)")
-        print(f"| {theta:g} deg, {mu:g} | {expected:.4f} | " + " | ".join(row) + " |", flush=True)
+        emit(f"| {theta:g} deg, {mu:g} | {expected:.4f} | " + " | ".join(row) + " |")
 
 
-def gap_study(cells):
+def gap_study(cells, emit):
     import jaxmpm
     import numpy as np
 
-    print("\n| cell h [m] | gap when the contact force first acts [m] | gap / h |")
-    print("|---:|---:|---:|")
+    emit("| cell h [m] | gap when the contact force first acts [m] | gap / h |")
+    emit("|---:|---:|---:|")
     for cell in cells:
         speed, start_gap = 1.0, 0.05
         sim = jaxmpm.Simulation(block_on_slab(cell, drop_speed=speed, start_gap=start_gap, duration=0.06))
@@ -85,10 +104,10 @@ def gap_study(cells):
         # moved by the block's displacement; the slab's top stays at y = 0.1
         surface = 0.1 + start_gap + float(probes["move"][first - 1, 1])
         gap = surface - 0.1
-        print(f"| {cell:g} | {gap:.4f} | {gap / cell:.2f} |", flush=True)
+        emit(f"| {cell:g} | {gap:.4f} | {gap / cell:.2f} |")
 
 
-def active_study(cells):
+def active_study(cells, emit):
     import jaxmpm
     import numpy as np
 
@@ -98,10 +117,11 @@ def active_study(cells):
     phi = math.radians(sand.friction_angle)
     weight = 0.5 * sand.density * G * height**2
     at_rest, rankine = weight * (1 - math.sin(phi)), weight * (1 - math.sin(phi)) / (1 + math.sin(phi))
-    print(f"\n1/2 K0 rho g H^2 = {at_rest:.1f} N/m, Rankine 1/2 Ka rho g H^2 = {rankine:.1f} N/m")
-    print("\n| wall friction mu | Coulomb (horizontal) [N/m] | cell [m] | points | thrust at rest [N/m] (vs K0) "
+    emit(f"1/2 K0 rho g H^2 = {at_rest:.1f} N/m, Rankine 1/2 Ka rho g H^2 = {rankine:.1f} N/m.")
+    emit()
+    emit("| wall friction mu | Coulomb (horizontal) [N/m] | cell [m] | points | thrust at rest [N/m] (vs K0) "
           "| mean thrust over the last 0.05 s [N/m] (vs Rankine) | run [s] |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+    emit("|---:|---:|---:|---:|---:|---:|---:|")
     for mu in (0.0, 0.4):
         delta = math.atan(mu)
         coulomb = weight * math.cos(phi) ** 2 / (
@@ -116,13 +136,14 @@ def active_study(cells):
             seconds = time.perf_counter() - start
             before = -thrust[(sim.time > 0.01) & (sim.time < 0.05)].mean()
             after = -thrust[sim.time > sim.time[-1] - 0.05].mean()
-            print(f"| {mu:g} | {coulomb:.1f} | {cell:g} | {sim.point_count:,} | {before:.1f} ({100 * (before / at_rest - 1):+.1f} %) "
-                  f"| {after:.1f} ({100 * (after / rankine - 1):+.1f} %) | {seconds:.0f} |", flush=True)
+            emit(f"| {mu:g} | {coulomb:.1f} | {cell:g} | {sim.point_count:,} | {before:.1f} ({100 * (before / at_rest - 1):+.1f} %) "
+                  f"| {after:.1f} ({100 * (after / rankine - 1):+.1f} %) | {seconds:.0f} |")
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--only", choices=["active", "slide", "gap"])
+    parser.add_argument("--no-write", action="store_true", help="print only")
     arguments = parser.parse_args()
     import jax
 
@@ -131,7 +152,10 @@ def main():
                "active": (active_study, [0.025, 0.0125])}
     for name, (study, cells) in studies.items():
         if arguments.only in (None, name):
-            study(cells)
+            table = Table()
+            study(cells, table)
+            if not arguments.no_write:
+                write_section(f"<!-- {name}:begin -->", f"<!-- {name}:end -->", table.text(), DOC)
 
 
 if __name__ == "__main__":
