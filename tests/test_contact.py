@@ -283,30 +283,30 @@ def earth_pressures(friction_angle=30.0, wall_friction=0.0, height=0.5, density=
 
 
 @pytest.mark.slow
-def test_smooth_wall_thrust_falls_from_k0_to_rankine():
-    # Before the wall moves the backfill holds it with 1/2 K0 rho g H^2 (K0 = 1 - sin phi,
-    # Jaky); after ~2 mm (0.004 H) it has fallen to Rankine's active 1/2 Ka rho g H^2. The
-    # tolerances come from the resolution study of docs/contact.md (cells 0.025 and
-    # 0.0125 m): the coarse grid is within 2 % of K0 and 2 % of Rankine.
+def test_wall_thrust_falls_from_k0_to_rankine_and_below_with_wall_friction():
+    # Smooth wall: before it moves the backfill holds it with 1/2 K0 rho g H^2 (K0 = 1 - sin
+    # phi, Jaky); after ~1.2 mm (0.24 % of H) the thrust has fallen to Rankine's active
+    # 1/2 Ka rho g H^2. Resolution study (benchmarks/contact_study.py, docs/contact.md): at
+    # cells 0.025 / 0.0125 m the at-rest thrust is -0.2 / -0.0 % off K0 and the active one
+    # +1.9 / +2.4 % off Rankine (the rest of the fall is still under way), hence 1 % and 4 %.
+    at_rest, rankine, coulomb = earth_pressures(wall_friction=0.4)
     sim = Simulation(active_wall())
-    thrust = np.asarray(sim.probes()["thrust"][:, 0])
-    at_rest, rankine, _ = earth_pressures()
-    before = thrust[(sim.time > 0.01) & (sim.time < 0.05)].mean()
-    after = thrust[sim.time > 0.25].mean()
-    assert -before == pytest.approx(at_rest, rel=0.03)
-    assert -after == pytest.approx(rankine, rel=0.04)
-
-
-@pytest.mark.slow
-def test_rough_wall_thrust_lies_between_coulomb_and_rankine():
-    # Wall friction mu = tan(delta) = 0.4 lets the wall carry part of the wedge: the horizontal
-    # thrust falls below Rankine's, but not below Coulomb's (delta fully mobilised).
+    thrust = np.asarray(sim.probes()["thrust"])
+    late = sim.time > sim.time[-1] - 0.05
+    smooth = -thrust[late, 0].mean()
+    assert -thrust[(sim.time > 0.01) & (sim.time < 0.05), 0].mean() == pytest.approx(at_rest, rel=0.01)
+    assert smooth == pytest.approx(rankine, rel=0.04)
+    # mu = 0: no shear on the wall; only at the node of the wall's foot (the corner of its
+    # normal field, on the slip base) does the normal tilt: 2.3 N/m of 750 measured
+    assert abs(thrust[late, 1].mean()) < 0.01 * smooth
+    # Rough wall, mu = tan(delta) = 0.4: the settling backfill hangs on the wall (it drags it
+    # down, with at most mu times the normal force), which lowers the horizontal thrust, but
+    # not below Coulomb's active value for a fully mobilised delta.
     sim = Simulation(active_wall(friction=0.4))
     thrust = np.asarray(sim.probes()["thrust"])
-    _, rankine, coulomb = earth_pressures(wall_friction=0.4)
-    after = -thrust[sim.time > 0.25, 0].mean()
-    assert coulomb * 0.97 < after < rankine * 1.04
-    assert thrust[sim.time > 0.25, 1].mean() < 0.0      # the sand drags the wall down
+    rough, drag = -thrust[late, 0].mean(), -thrust[late, 1].mean()
+    assert coulomb < rough < smooth
+    assert 0.0 < drag <= 0.4 * rough
 
 
 # --------------------------------------------------------------------------- gradients
