@@ -758,6 +758,11 @@ def check_scene(scene: Scene):
                 )
         elif len(vertices) < 3:
             raise SceneError(f"{where}.region.polygon has {len(vertices)} vertices: it needs at least 3.")
+        if body.initial_stress is not None and body.kinematics.type != "free":
+            raise SceneError(
+                f"{where}.initial_stress is given for a {body.kinematics.type} body, whose stress is never used: "
+                "remove it (only free bodies carry stress)."
+            )
         if body.initial_stress is not None:
             k0 = body.initial_stress.k0
             key = f"{where}.initial_stress.geostatic.k0"

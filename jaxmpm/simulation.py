@@ -12,6 +12,7 @@ parameter values: a parameter change that raises the wave speed does not shorten
 
 from __future__ import annotations
 
+import itertools
 import math
 import time as clock
 
@@ -77,19 +78,15 @@ def velocity_fields(scene: Scene):
     field.update({name: index + bool(shared) for index, name in enumerate(own)})
     count = len(own) + bool(shared)
     kinematic = {field[body.name] for body in scene.bodies if body.kinematics.type != "free"}
-    contacts = {frozenset(field[name] for name in contact.pair): contact.name for contact in scene.contacts}
+    contacts = {frozenset(field[name] for name in contact.pair): contact for contact in scene.contacts}
     interfaces = []
-    for first in range(count):
-        for second in range(first + 1, count):
-            if first in kinematic and second in kinematic:
-                continue
-            name = contacts.get(frozenset((first, second)))
-            if name is not None and field[name.split("/")[0]] != first:
-                # keep the pair's own order: an interface's impulse acts on its first field
-                first_field, second_field = second, first
-            else:
-                first_field, second_field = first, second
-            interfaces.append(Interface(first_field, second_field, name, first_field in kinematic, second_field in kinematic))
+    for pair in itertools.combinations(range(count), 2):
+        if set(pair) <= kinematic:
+            continue
+        contact = contacts.get(frozenset(pair))
+        first, second = pair if contact is None else (field[contact.pair[0]], field[contact.pair[1]])
+        name = None if contact is None else contact.name      # a contact keeps its pair's order
+        interfaces.append(Interface(first, second, name, first in kinematic, second in kinematic))
     return field, count, tuple(interfaces)
 
 

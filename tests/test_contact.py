@@ -19,6 +19,7 @@ import pytest
 import tomli_w
 
 from jaxmpm.contact import Interface, contact_normals, contact_velocity_change, resolve_interfaces
+from jaxmpm.simulation import velocity_fields
 from jaxmpm import (
     Body, Boundaries, Contact, DruckerPrager, Geostatic, Grid, Kinematics, LinearElastic, Numerics, Polygon, Probe,
     Rectangle, Scene, SceneError, Simulation, with_values,
@@ -367,6 +368,23 @@ def test_fields_and_parameters_follow_the_scene():
     assert set(single.params) == {"materials"}
 
 
+def test_unpaired_bodies_are_bonded_to_paired_ones():
+    # A foundation that is in no pair shares field 0; the backfill and the wall get their own.
+    # The foundation is bonded (no slip) to both, the pair is in frictional contact, in the
+    # pair's own order (its impulse acts on the backfill).
+    scene = small_active_wall()
+    foundation = Body("foundation", "sand", Rectangle((0.0, 0.0), (2.0, 0.1)))
+    backfill = dataclasses.replace(scene.bodies[0], region=Rectangle((0.3, 0.1), (2.0, 0.5)))
+    wall = dataclasses.replace(scene.bodies[1], region=Rectangle((0.2, 0.1), (0.3, 0.6)))
+    field, count, interfaces = velocity_fields(dataclasses.replace(scene, bodies=(foundation, wall, backfill)))
+    assert field == {"foundation": 0, "wall": 1, "backfill": 2} and count == 3
+    assert interfaces == (
+        Interface(0, 1, None, kinematic_second=True),
+        Interface(0, 2, None),
+        Interface(2, 1, "backfill/wall", kinematic_second=True),
+    )
+
+
 def test_friction_changes_do_not_recompile():
     sim = Simulation(small_active_wall(duration=0.01))
     traces = []
@@ -412,6 +430,8 @@ BAD = [
     (lambda s: dataclasses.replace(s, bodies=(s.bodies[0], dataclasses.replace(s.bodies[1], kinematics=Kinematics("prescribed")))),
      "a prescribed body needs its velocity"),
     (lambda s: dataclasses.replace(s, probes=(Probe("r", "reaction", body="backfill"),)), "is free, not prescribed"),
+    (lambda s: dataclasses.replace(s, bodies=(s.bodies[0], dataclasses.replace(s.bodies[1], initial_stress=Geostatic(0.5)))),
+     "initial_stress is given for a prescribed body"),
     (lambda s: dataclasses.replace(s, probes=(Probe("f", "contact_force", pair=("wall", "nothing")),)), "is not a pair of"),
 ]
 
