@@ -404,6 +404,21 @@ def test_friction_changes_do_not_recompile():
     assert len(traces) == count
 
 
+def test_calibration_names_reach_contact_friction():
+    from inverse.parameters import ParameterSpace
+
+    sim = Simulation(small_active_wall())
+    space = ParameterSpace(sim.params, {"backfill/wall.friction": (0.0, 1.0), "materials.sand.friction_angle": (20, 40)})
+    params = space.insert(jnp.asarray([0.45, 33.0]))
+    assert float(params["contacts"]["backfill/wall"]["friction"]) == 0.45
+    assert float(params["materials"]["sand"]["friction_angle"]) == 33.0
+    assert sim.params["contacts"]["backfill/wall"]["friction"] == 0.3           # the template is untouched
+    with pytest.raises(SceneError, match="not a single number"):
+        ParameterSpace(sim.params, {"bodies.wall.velocity": (-1, 1)})
+    with pytest.raises(SceneError, match="is not a parameter of the scene"):
+        ParameterSpace(sim.params, {"backfill/wall.frction": (0, 1)})
+
+
 def test_dotted_names_address_contacts_and_bodies():
     scene = small_active_wall()
     assert scene.with_value("contacts.backfill/wall.friction", 0.5).contacts[0].friction == 0.5
