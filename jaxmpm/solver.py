@@ -172,8 +172,14 @@ def particles_to_grid(particles, stencil, offsets, field, structure):
     layout = structure.layout
     values = combine_on_stencil(terms)
     nodes = scatter_to_nodes(layout, stencil.base, values, field, structure.fields)
-    nodes = fold_ghosts(nodes, layout, structure.boundaries)
-    return Nodes(nodes[..., 0], nodes[..., 1:3], nodes[..., 3:5], nodes[..., 5:7] if normals else None)
+    mass_gradient = None
+    if normals:   # the mirror image of a mass gradient flips only its normal component (as at a slip edge)
+        mirror = dataclasses.replace(structure.boundaries, **{
+            edge: "slip" for edge, kind in dataclasses.asdict(structure.boundaries).items() if kind != "free"
+        })
+        mass_gradient = fold_ghosts(nodes[..., 5:7], layout, mirror, scalars=0)
+    nodes = fold_ghosts(nodes[..., :5], layout, structure.boundaries)
+    return Nodes(nodes[..., 0], nodes[..., 1:3], nodes[..., 3:5], mass_gradient)
 
 
 def safe_velocity(momentum, mass, floor):

@@ -77,7 +77,7 @@ def test_interfaces_keep_momentum_and_kinematic_velocities():
 # --------------------------------------------------------------------------- block on a slab
 
 
-def sliding_block(theta_degrees, friction, duration=0.2):
+def sliding_block(theta_degrees, friction, duration=0.2, shape="linear"):
     """An elastic block (0.2 x 0.1 m) resting on a held slab, gravity tilted by theta: the
     axis-aligned grid stands in for an inclined plane. APIC (FLIP's noise makes a block that
     should stick creep)."""
@@ -94,7 +94,7 @@ def sliding_block(theta_degrees, friction, duration=0.2):
         gravity=(G * math.sin(theta), -G * math.cos(theta)),
         duration=duration,
         output_every=duration / 4,
-        numerics=Numerics(ppc=2, transfer="apic"),
+        numerics=Numerics(ppc=2, transfer="apic", shape=shape),
         probes=(
             Probe("move", "body_displacement", body="block"),
             Probe("load", "contact_force", pair=("block", "slab")),
@@ -109,10 +109,12 @@ def fitted_acceleration(sim, displacement):
     return 2.0 * np.polyfit(sim.time[start:], displacement[start:], 2)[0]
 
 
-@pytest.mark.parametrize("theta, friction", [(30.0, 0.3), (30.0, 0.0), (40.0, 0.5)])
-def test_block_slides_with_coulomb_acceleration(theta, friction):
+@pytest.mark.parametrize("theta, friction, shape", [
+    (30.0, 0.3, "linear"), (30.0, 0.0, "linear"), (40.0, 0.5, "linear"), (30.0, 0.3, "bspline2"),
+])
+def test_block_slides_with_coulomb_acceleration(theta, friction, shape):
     # a = g (sin theta - mu cos theta) once the block slides (tan theta > mu).
-    sim = Simulation(sliding_block(theta, friction))
+    sim = Simulation(sliding_block(theta, friction, shape=shape))
     probes = sim.probes()
     expected = G * (math.sin(math.radians(theta)) - friction * math.cos(math.radians(theta)))
     measured = fitted_acceleration(sim, np.asarray(probes["move"][:, 0]))
