@@ -235,7 +235,10 @@ class Scene:
                   "bodies": tuple(body.name for body in self.bodies)}
         head = key.partition(".")[0]
         if head not in data and head not in ("scene", "grid", "numerics", "probes"):
-            key = qualify(key, owners)
+            try:
+                key = qualify(key, owners)
+            except SceneError as error:
+                raise SceneError(f"--set {key}: {error}") from None
         parts = key.split(".")
         if parts[0] == "contacts" and len(parts) == 3:
             if parts[1] not in owners["contacts"]:

@@ -98,8 +98,8 @@ def bar_scene(cells, duration, output_every):
 def first_mode_state(sim, v0):
     """The initial state with v(x, 0) = v0 sin(pi x / 2L) along the bar."""
     state = sim.initial_state()
-    speed = v0 * jnp.sin(jnp.pi * state.x[:, 0] / (2.0 * BAR_LENGTH))
-    return state.replace(v=jnp.stack([speed, jnp.zeros_like(speed)], axis=1))
+    speed = v0 * jnp.sin(jnp.pi * state.particles.x[:, 0] / (2.0 * BAR_LENGTH))
+    return state.replace(particles=state.particles.replace(v=jnp.stack([speed, jnp.zeros_like(speed)], axis=1)))
 
 
 def bar_dispersion(cells, dt):
@@ -465,14 +465,14 @@ def test_prestressed_block_rotation_keeps_invariants_and_turns_stress(update):
     )
     sim = jaxmpm.Simulation(scene)
     state = sim.initial_state()
-    relative = state.x - jnp.asarray(centre)
+    relative = state.particles.x - jnp.asarray(centre)
     s0 = np.array([[-100.0, 20.0, 0.0], [20.0, -50.0, 0.0], [0.0, 0.0, -70.0]])
-    state = state.replace(
+    state = state.replace(particles=state.particles.replace(
         v=omega * jnp.stack([-relative[:, 1], relative[:, 0]], axis=1),
-        stress=jnp.broadcast_to(jnp.asarray(s0), state.stress.shape),
-    )
+        stress=jnp.broadcast_to(jnp.asarray(s0), state.particles.stress.shape),
+    ))
     result = sim.run(initial=state, progress=False)
-    x0 = np.asarray(state.x)
+    x0 = np.asarray(state.particles.x)
     x, stress = result.snapshots["block"]["x"][-1], result.snapshots["block"]["stress"][-1]
 
     # Invariants of every point, edge points included.

@@ -32,11 +32,11 @@ def settlement_measure(sim, params):
 
 
 def central_difference(function, params, material, name, relative_step=1e-6):
-    step = relative_step * params[material][name]
+    value = params["materials"][material][name]
+    step = relative_step * value
 
     def shifted(delta):
-        moved = jax.tree_util.tree_map(lambda value: value, params)
-        moved[material] = dict(params[material], **{name: params[material][name] + delta})
+        moved = jaxmpm.with_values(params, {f"{material}.{name}": value + delta})
         return float(function(moved))
 
     return (shifted(step) - shifted(-step)) / (2.0 * step)
@@ -47,7 +47,7 @@ def central_difference(function, params, material, name, relative_step=1e-6):
 def test_probe_gradient_matches_central_differences(update, shape, name):
     sim = shared_simulation(update, shape)
     params = sim.params
-    gradient = jax.grad(lambda p: settlement_measure(sim, p))(params)["soil"][name]
+    gradient = jax.grad(lambda p: settlement_measure(sim, p))(params)["materials"]["soil"][name]
     reference = central_difference(lambda p: settlement_measure(sim, p), params, "soil", name)
     assert np.isfinite(gradient) and abs(reference) > 0.0
     np.testing.assert_allclose(gradient, reference, rtol=1e-5)
@@ -59,7 +59,7 @@ def test_gradients_are_finite_with_empty_nodes_and_fixed_edges(shape):
     # through mirrored ghost nodes): the guarded p / m must give finite gradients everywhere
     # (PERFORMANCE.md: a peer returned NaN gradients exactly here).
     sim = shared_simulation("musl", shape)
-    gradient = jax.grad(lambda p: jnp.sum(sim.final_state(p).v ** 2))(sim.params)
+    gradient = jax.grad(lambda p: jnp.sum(sim.final_state(p).particles.v ** 2))(sim.params)
     assert all(np.isfinite(value) for value in jax.tree_util.tree_leaves(gradient))
 
 
@@ -68,13 +68,13 @@ def test_changing_parameters_never_retraces():
     traces = []
     step = sim.step
 
-    def counting_step(params, particles):
+    def counting_step(params, state):
         traces.append(1)
-        return step(params, particles)
+        return step(params, state)
 
     sim.step = counting_step
     for young in (1.0e6, 2.0e6, np.float64(3.0e6), jnp.asarray(4.0e6)):
-        params = {"soil": dict(sim.params["soil"], young=young)}
+        params = jaxmpm.with_values(sim.params, {"soil.young": young})
         sim.probes(params)["top"].block_until_ready()
     assert len(traces) == 1
 
@@ -82,10 +82,10 @@ def test_changing_parameters_never_retraces():
     loss(sim.params)
     traced_for_gradient = len(traces)
     for density in (1700.0, 1900.0):
-        loss({"soil": dict(sim.params["soil"], density=density)})
+        loss(jaxmpm.with_values(sim.params, {"soil.density": density}))
     assert len(traces) == traced_for_gradient
 
-    batched = jax.vmap(lambda young: settlement_measure(sim, {"soil": dict(sim.params["soil"], young=young)}))
+    batched = jax.vmap(lambda young: settlement_measure(sim, jaxmpm.with_values(sim.params, {"soil.young": young})))
     batched(jnp.array([1.0e6, 2.0e6]))
     traced_for_batch = len(traces)
     batched(jnp.array([3.0e6, 5.0e6]))
@@ -95,8 +95,8 @@ def test_changing_parameters_never_retraces():
 def test_vmap_over_parameters_matches_single_runs():
     sim = shared_simulation()
     youngs = jnp.array([1.0e6, 3.0e6])
-    batched = jax.vmap(lambda young: settlement_measure(sim, {"soil": dict(sim.params["soil"], young=young)}))(youngs)
-    singles = [settlement_measure(sim, {"soil": dict(sim.params["soil"], young=y)}) for y in youngs]
+    batched = jax.vmap(lambda young: settlement_measure(sim, jaxmpm.with_values(sim.params, {"soil.young": young})))(youngs)
+    singles = [settlement_measure(sim, jaxmpm.with_values(sim.params, {"soil.young": y})) for y in youngs]
     np.testing.assert_allclose(batched, singles, rtol=1e-12)
 
 
@@ -108,7 +108,7 @@ def test_checkpoint_segments_do_not_change_values_or_gradients(segment):
     value, gradient = jax.value_and_grad(lambda p: settlement_measure(sim, p))(sim.params)
     value_ref, gradient_ref = jax.value_and_grad(lambda p: settlement_measure(reference, p))(sim.params)
     np.testing.assert_allclose(value, value_ref, rtol=1e-12)
-    np.testing.assert_allclose(gradient["soil"]["young"], gradient_ref["soil"]["young"], rtol=1e-10)
+    np.testing.assert_allclose(gradient["materials"]["soil"]["young"], gradient_ref["materials"]["soil"]["young"], rtol=1e-10)
 
 
 def test_reverse_mode_jit_drops_library_reductions_and_keeps_the_gradient():
@@ -124,10 +124,10 @@ def test_reverse_mode_jit_drops_library_reductions_and_keeps_the_gradient():
         text = text.replace(old, new)
     scene = jaxmpm.Scene.from_toml(text)
     sim = jaxmpm.Simulation(scene)
-    young = sim.params["soil"]["young"]
+    young = sim.params["materials"]["soil"]["young"]
 
     def loss(value):
-        return settlement_measure(sim, {"soil": dict(sim.params["soil"], young=value)})
+        return settlement_measure(sim, jaxmpm.with_values(sim.params, {"soil.young": value}))
 
     plain, tuned = jax.jit(jax.grad(loss)), jit_reverse_mode(jax.grad(loss))
     np.testing.assert_allclose(tuned(young), plain(young), rtol=1e-12)

@@ -199,7 +199,7 @@ def test_observation_files_round_trip(tmp_path):
 def test_bad_calibration_input_is_a_clear_error():
     sim = twin_simulation()
     observations = twin_observations()
-    with pytest.raises(SceneError, match=r"'sand.friction_angl'.*did you mean 'sand.friction_angle'"):
+    with pytest.raises(SceneError, match=r"'sand.friction_angl'.*did you mean 'materials.sand.friction_angle'"):
         inverse.calibrate(sim, observations, {"sand.friction_angl": (20, 40)}, progress=False)
     with pytest.raises(SceneError, match=r"sand.fluidity: the initial value 5 is not strictly inside"):
         inverse.calibrate(sim, observations, {"sand.fluidity": (10, 100)}, progress=False)
@@ -252,7 +252,7 @@ def test_gauss_newton_reports_an_unconstrained_direction_as_infinite():
 
 
 def test_bounds_transforms_round_trip_and_stay_inside():
-    params = {"sand": {"a": 2.0, "b": 3.0, "c": -1.0, "d": 0.5}}
+    params = {"materials": {"sand": {"a": 2.0, "b": 3.0, "c": -1.0, "d": 0.5}}}
     space = ParameterSpace(params, {"sand.a": (1.0, 5.0), "sand.b": (0.0, None), "sand.c": (None, 0.0), "sand.d": (None, None)})
     values = jnp.array([2.0, 3.0, -1.0, 0.5])
     np.testing.assert_allclose(space.to_physical(space.to_unconstrained(values)), values, rtol=1e-12)

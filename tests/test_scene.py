@@ -67,7 +67,7 @@ BAD_INPUTS = [
     ("unknown probe body", ('body = "block"', 'body = "wall"'), ["probes[1].body", "'wall'"]),
     ("reserved name", ('name = "block"\nmaterial', 'name = "time"\nmaterial'), ["bodies[0].name = 'time'"]),
     ("unsafe name", ('name = "top"', 'name = "top/left"'), ["probes[0].name = 'top/left'"]),
-    ("probe not built yet", ('kind = "body_displacement"', 'kind = "reaction"'), ["probes[1].kind", "not available yet"]),
+    ("reaction of a free body", ('kind = "body_displacement"', 'kind = "reaction"'), ["probes[1].body = 'block'", "free, not prescribed"]),
 ]
 
 
@@ -119,22 +119,24 @@ def test_parameters_that_make_the_fixed_time_step_unstable_are_refused():
     import jax
 
     sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK))
-    stiff = {"soil": dict(sim.params["soil"], young=100 * sim.params["soil"]["young"])}
+    stiff = jaxmpm.with_values(sim.params, {"soil.young": 100 * sim.params["materials"]["soil"]["young"]})
     assert sim.stable_time_step(sim.params) == pytest.approx(sim.scene.stable_dt, rel=1e-12)
     assert sim.stable_time_step(stiff) == pytest.approx(sim.scene.stable_dt / 10.0, rel=1e-12)
     for call in (sim.probes, sim.final_state, lambda p: sim.run(p, progress=False)):
-        with pytest.raises(SceneError, match=r"params\['soil'\] \(young = 1e\+08\) need a time step below .* fixed"):
+        with pytest.raises(SceneError, match=r"params\['materials'\]\['soil'\] \(young = 1e\+08\) need a time step below .* fixed"):
             call(stiff)
     # Initial velocities set through `initial=` count like a body's scene velocity: c_p + |v|.
     state = sim.initial_state()
-    fast = state.replace(v=state.v.at[3, 0].set(10.0 * sim.scene.max_wave_speed))
+    particles = state.particles
+    fast = state.replace(particles=particles.replace(v=particles.v.at[3, 0].set(10.0 * sim.scene.max_wave_speed)))
     with pytest.raises(SceneError, match=r"initial velocities \(up to .* m/s\) need a time step below"):
         sim.probes(initial=fast)
-    assert sim.probes(initial=state.replace(v=state.v.at[3, 0].set(0.1)))["top"].shape == (sim.steps + 1, 2)
-    soft = {"soil": dict(sim.params["soil"], young=0.5 * sim.params["soil"]["young"])}
+    slow = state.replace(particles=particles.replace(v=particles.v.at[3, 0].set(0.1)))
+    assert sim.probes(initial=slow)["top"].shape == (sim.steps + 1, 2)
+    soft = jaxmpm.with_values(sim.params, {"soil.young": 0.5 * sim.params["materials"]["soil"]["young"]})
     assert sim.probes(soft)["top"].shape == (sim.steps + 1, 2)
-    gradient = jax.grad(lambda young: sim.probes({"soil": dict(sim.params["soil"], young=young)})["top"][-1, 1])
-    assert jax.numpy.isfinite(gradient(sim.params["soil"]["young"]))
+    gradient = jax.grad(lambda young: sim.probes(jaxmpm.with_values(sim.params, {"soil.young": young}))["top"][-1, 1])
+    assert jax.numpy.isfinite(gradient(sim.params["materials"]["soil"]["young"]))
 
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])

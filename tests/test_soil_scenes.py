@@ -45,6 +45,7 @@ def test_geostatic_layer_stays_at_rest(ppc):
     for name, text in (("geostatic", geostatic), ("unstressed", LAYER)):
         sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(text).with_value("numerics.ppc", ppc))
         start, end = sim.initial_state(), sim.final_state()
+        start, end = start.particles, end.particles
         moved[name] = float(np.abs(np.asarray(end.x - start.x)).max())
         if name == "geostatic":
             sigma = np.asarray(start.stress)
@@ -68,10 +69,10 @@ def test_jaky_k0_follows_the_friction_angle_and_is_differentiable():
     sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(text))
 
     def horizontal_at_base(phi):
-        params = {"sand": dict(sim.params["sand"], friction_angle=phi)}
-        return sim.initial_state(params).stress[0, 0, 0]
+        params = jaxmpm.with_values(sim.params, {"sand.friction_angle": phi})
+        return sim.initial_state(params).particles.stress[0, 0, 0]
 
-    vertical = float(sim.initial_state().stress[0, 1, 1])
+    vertical = float(sim.initial_state().particles.stress[0, 1, 1])
     # d/dphi [(1 - sin phi) sigma_v] = -cos(phi) sigma_v * pi / 180 (phi in degrees)
     expected = -np.cos(np.radians(30.0)) * vertical * np.pi / 180.0
     np.testing.assert_allclose(jax.grad(horizontal_at_base)(30.0), expected, rtol=1e-10)
@@ -87,7 +88,7 @@ def test_coarse_column_collapse_matches_published_deposit():
     example = Path(__file__).parents[1] / "examples" / "column_collapse.toml"
     scene = jaxmpm.load_scene(example).with_value("grid.cell", 0.01).with_value("scene.output_every", 0.1)
     sim = jaxmpm.Simulation(scene)
-    start, end = np.asarray(sim.initial_state().x), np.asarray(sim.final_state().x)
+    start, end = np.asarray(sim.initial_state().particles.x), np.asarray(sim.final_state().particles.x)
     half = 0.5 * scene.grid.cell / scene.numerics.ppc
     length0, height0 = start[:, 0].max() + half, start[:, 1].max() + half
     length, height = end[:, 0].max() + half, end[:, 1].max() + half
@@ -108,7 +109,7 @@ def test_geostatic_depth_follows_a_sloping_surface():
         'initial_stress = { geostatic = { k0 = 0.5 } }',
     )
     sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(text).with_value("numerics.ppc", 2))
-    state = sim.initial_state()
+    state = sim.initial_state().particles
     x, y = np.asarray(state.x).T
     depth = np.asarray(state.stress[:, 1, 1]) / (-1800.0 * 9.81)
     spacing = 0.05 / 2
@@ -128,7 +129,9 @@ body = "layer"
     state = sim.initial_state()
     for theta in (0.3, -1.2, 2.5):
         rotation = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
-        moved = (np.asarray(state.x) - [0.2, 0.1]) @ rotation.T + [1.0, -3.0]
-        value = sim.observe(state.replace(x=np.asarray(moved)), state.x)["turn"]
+        x0 = state.particles.x
+        moved = (np.asarray(x0) - [0.2, 0.1]) @ rotation.T + [1.0, -3.0]
+        moved = state.replace(particles=state.particles.replace(x=np.asarray(moved)))
+        value = sim.observe(moved, sim.quiet_diagnostics(sim.dtype), x0)["turn"]
         assert value.shape == (1,)
         np.testing.assert_allclose(float(value[0]), theta, atol=1e-12)
