@@ -236,7 +236,7 @@ METHOD = f"""\
 Method. Scene: a linear-elastic block (rho = 1000 kg/m^3, E = 1 MPa, nu = 0.3) resting on the
 fixed floor of a 1 m x 1 m box under gravity, or the same block as rate-independent
 Drucker-Prager sand (phi = 30 deg, the paper's cone), which slumps under its own weight (the
-last rows: the material of PERFORMANCE.md's peers); linear shape functions (the last row:
+last rows: the material of the peer codes below); linear shape functions (the last row:
 quadratic B-splines, as the peers used), 2 x 2 points per cell,
 MUSL, FLIP 0.99, dt = 0.4 h / (40 m/s); 10,000 points on a 100^2 grid, and 16,384 points on the
 128^2 grid of a comparison of CPU MPM codes (Numba, Taichi, Warp, JAX) measured on this machine kind (whose peers ran APIC/MLS with a

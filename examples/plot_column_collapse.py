@@ -4,7 +4,7 @@
     python examples/plot_column_collapse.py column_collapse.h5 [-o column_collapse.png]
 
 Runout (L_inf - L0) / L0 = lambda a for aspect ratio a = H0 / L0 below the transition:
-lambda = 1.2 (Lube et al. 2005) to 1.8 (Lajeunesse et al. 2005) (VALIDATION.md section 6).
+lambda = 1.2 (Lube et al. 2005) to 1.8 (Lajeunesse et al. 2005) (docs/validation.md §6).
 The deposit edge is the outermost point plus half a point spacing.
 """
 

@@ -1,4 +1,4 @@
-"""inverse: gradient-based calibration of jaxmpm material parameters (SPEC section 5).
+"""inverse: gradient-based calibration of jaxmpm material parameters.
 
     import inverse
     observations = inverse.load_observations("measured.csv", sigma={"top": 1e-4})

@@ -1,4 +1,4 @@
-"""Calibration: fit material parameters to observed probe histories (SPEC section 5).
+"""Calibration: fit material parameters to observed probe histories.
 
     fit = inverse.calibrate(sim, observations, fit={"sand.friction_angle": (20, 45)})
 

@@ -5,7 +5,7 @@ Nodes form an (nx + 1, ny + 1) array, one per velocity field: node arrays are
 without contact pairs has one field). Particle-to-grid is ONE scatter: each point adds a row
 holding all its s x s nodes' values side by side, keyed by its base node; the rows are then
 spread to the nodes with s x s shifted adds. This was ~2.5x faster on CPU than s^2 N separate
-scatter rows (../PERFORMANCE notes, measured again in benchmarks/).
+scatter rows (measured in benchmarks/).
 """
 
 import dataclasses

@@ -1,4 +1,4 @@
-"""Results of a forward run and their HDF5 file (SPEC section 4).
+"""Results of a forward run and their HDF5 file.
 
 File layout: root attributes `jaxmpm_version`, `scene` (TOML text), `complete` (bool),
 `message`; datasets /time (T,), /probes/NAME (T, k), /snapshots/time (S,),

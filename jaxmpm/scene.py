@@ -1,4 +1,4 @@
-"""Scenes: the TOML scene format of SPEC section 8, read into frozen dataclasses and checked.
+"""Scenes: the TOML scene format, read into frozen dataclasses and checked.
 
 A `Scene` says everything about a run: grid, numerics, materials, bodies, probes. It is plain
 data (SI units, angles in degrees); `Simulation` splits it into static structure and a
@@ -29,7 +29,7 @@ SNAPSHOT_FIELDS = ("x", "v", "displacement", "stress", "plastic_strain", "volume
 PROBE_KINDS = ("displacement", "body_displacement", "body_rotation", "contact_force", "reaction")
 KINEMATICS = ("free", "prescribed", "rigid")
 NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")   # bodies, materials, probes: safe in HDF5 paths and --set
-# Keys the SPEC names whose physics is not built yet: rejected with a clear message, not ignored.
+# Keys of the scene format whose physics is not built yet: rejected with a clear message, not ignored.
 NOT_YET = {
     "geometry": ("axisymmetric",),
 }

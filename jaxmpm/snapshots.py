@@ -91,7 +91,7 @@ class Snapshots:
 
 
 def stress_scalar(name, stress):
-    """p, q or one component of (N, 3, 3) stresses (SPEC section 2 conventions)."""
+    """p, q or one component of (N, 3, 3) stresses (tension positive, p = -tr(sigma)/3)."""
     if name in STRESS_COMPONENTS:
         return stress[:, STRESS_COMPONENTS[name][0], STRESS_COMPONENTS[name][1]]
     pressure = -np.trace(stress, axis1=1, axis2=2) / 3.0

@@ -1,6 +1,6 @@
 """Small tensor algebra on one material point's 3x3 tensors (vmapped by callers).
 
-Sign convention (SPEC section 2): tension positive; p = -tr(sigma)/3 (compression positive),
+Sign convention: tension positive; p = -tr(sigma)/3 (compression positive),
 s = sigma + p I, q = sqrt(3/2 s:s). Every square root here is safe: value and gradient stay
 finite at zero.
 """

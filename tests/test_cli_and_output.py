@@ -1,4 +1,4 @@
-"""The `jaxmpm run` command and the HDF5 output schema of SPEC section 4."""
+"""The `jaxmpm run` command and the HDF5 output schema of jaxmpm.results."""
 
 import subprocess
 import sys

@@ -1,6 +1,6 @@
 """Drucker-Prager sand at one material point, against closed-form answers.
 
-VALIDATION.md sections 0, 3 and 8; SPEC.md section 2. The model (Wieckowski, eq. 2 and its
+docs/validation.md §0, §3 and §8. The model (Wieckowski, eq. 2 and its
 Perzyna variant): f = q - m p, g = q, non-cohesive; tension positive, p = -tr(sigma)/3,
 q = sqrt(3/2 s:s). Every expected number is re-derived in a comment next to its test.
 
@@ -47,7 +47,7 @@ def assert_close(actual, desired, rtol=0.0, atol=0.0, err_msg=""):
 
 
 def cone_slope(cone, friction_angle):
-    """m(phi), written out independently of the package (SPEC 2, VALIDATION 0)."""
+    """m(phi), written out independently of the package (docs/validation.md §0)."""
     s = np.sin(np.deg2rad(friction_angle))
     return {
         "paper": 18.0 * s / (9.0 - s * s),
@@ -343,7 +343,7 @@ def test_drained_triaxial_peak_yield_strain_and_no_dilation(loading, cone, dtype
 @pytest.mark.parametrize("dtype", DTYPES, ids=DTYPE_IDS)
 @pytest.mark.parametrize("cone", ["paper", "plane_strain"])
 def test_plane_strain_biaxial_stress_ratio(cone, dtype):
-    # VALIDATION 0 / 3: in plane strain (d_zz = 0) with g = q the plastic strain rate has
+    # docs/validation.md §0 / §3: in plane strain (d_zz = 0) with g = q the plastic strain rate has
     # e^p_zz ~ s_zz, and d_zz = 0 makes the elastic strain absorb it until s_zz = 0, i.e.
     # sigma_zz = (sigma_1 + sigma_3)/2 (an exponential approach in the plastic strain, at a rate
     # ~ G/q per unit strain: hence 400 steps of 1e-3 at E/sigma_c = 1000). Then
@@ -399,7 +399,7 @@ def test_perzyna_steady_overstress_at_constant_pressure(dtype):
 
 @pytest.mark.parametrize("dtype", DTYPES, ids=DTYPE_IDS)
 def test_perzyna_steady_state_in_drained_triaxial(dtype):
-    # Drained triaxial at constant sigma_c and axial rate r (VALIDATION 3). Steady state: all
+    # Drained triaxial at constant sigma_c and axial rate r (docs/validation.md §3). Steady state: all
     # stresses constant, so all strain rates are viscoplastic and (g = q) isochoric: lateral
     # rates -r/2 and, exactly as above, an equivalent deviatoric rate r, so
     # (q - m p)/(m p) = rho = (r/gamma)^(1/N). With p = sigma_c + q/3:
@@ -747,7 +747,7 @@ def gradient_comparison(viscoplastic):
 @pytest.mark.parametrize("viscoplastic", [False, True], ids=["rate_independent", "viscoplastic"])
 @pytest.mark.parametrize("state", GRADIENT_STATES)
 def test_gradients_match_central_differences(state, viscoplastic):
-    # VALIDATION 8: reverse-mode d(read-out)/d(parameter) against (J(t + h) - J(t - h))/2h with
+    # docs/validation.md §8: reverse-mode d(read-out)/d(parameter) against (J(t + h) - J(t - h))/2h with
     # h = 1e-6 t, float64; J = mean over the history of sum_ij W_ij sigma_ij / sigma_c.
     # Truncation O(h^2) ~ 1e-12 relative; cancellation ULPS eps |J| / h absolute (it dominates
     # where t dJ/dt << J, e.g. the fluidity once the overstress has relaxed). Tolerance: 1e-6
@@ -779,7 +779,7 @@ def test_gradients_match_central_differences(state, viscoplastic):
 
 @pytest.mark.parametrize("dtype", DTYPES, ids=DTYPE_IDS)
 def test_rigid_rotation_of_a_plastic_state_keeps_invariants(dtype):
-    # SPEC 2 / VALIDATION 4: load onto the cone (isochoric compression with shear), then spin
+    # docs/validation.md §4: load onto the cone (isochoric compression with shear), then spin
     # (L = W, d = 0) through 2 rad. A rigid rotation must keep p and q (the state stays on the
     # cone: f* = 0 to round-off, so the return does nothing), and the stress must turn with the
     # body: sigma = R sigma0 R^T with R the rotation by omega t, up to the error of the
@@ -814,7 +814,7 @@ def test_rigid_rotation_of_a_plastic_state_keeps_invariants(dtype):
 @pytest.mark.parametrize("viscoplastic", [False, True], ids=["rate_independent", "viscoplastic"])
 @pytest.mark.parametrize("dtype", DTYPES, ids=DTYPE_IDS)
 def test_tension_returns_to_the_apex(dtype, viscoplastic):
-    # Non-cohesive sand carries no tension (SPEC 2): a trial with p* < 0 returns to sigma = 0.
+    # Non-cohesive sand carries no tension: a trial with p* < 0 returns to sigma = 0.
     # Path 1, from -sigma_c I: expansion d = e I with 3 K e dt = 0.3 sigma_c, so the trial
     #   p* = sigma_c (1 - 0.3 n) (hydrostatic, q = 0: elastic) until n = 4 where p* < 0: the
     #   apex; then compression from sigma = 0, elastic again: sigma = -0.3 sigma_c j I.

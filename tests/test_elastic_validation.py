@@ -1,4 +1,4 @@
-"""The elastic solver against analytical solutions (VALIDATION.md sections 1, 2 and 4).
+"""The elastic solver against analytical solutions (docs/validation.md §1, §2 and §4).
 
 Each test states its source, re-derives the formula it checks, and bounds the error by the
 discretisation error it expects, derived in the comment next to the bound; the measured values
@@ -53,7 +53,7 @@ def elastic_energy(stress, volume, young, poisson):
 
 # =========================================================================== 1. vibrating bar
 #
-# Source: VALIDATION.md section 1 (Sulsky et al. 1994; Bardenhagen & Kober 2004; LearnMPM).
+# Source: docs/validation.md §1 (Sulsky et al. 1994; Bardenhagen & Kober 2004; LearnMPM).
 # Bar 0 <= x <= L, fixed at x = 0, free at x = L, laterally confined by slip edges on a grid one
 # cell high (every node has v_y = 0: a 1D problem). With nu = 0 the constrained modulus
 # M = E (1 - nu) / ((1 + nu)(1 - 2 nu)) equals E, so c = sqrt(E / rho) = 10 m/s.
@@ -214,7 +214,7 @@ def test_vibrating_bar_example_triangle_wave():
 
 # =========================================================================== 2. column, confined
 #
-# Source: VALIDATION.md section 2; CB-Geo MPM benchmark (elastic column under self-weight).
+# Source: docs/validation.md §2; CB-Geo MPM benchmark (elastic column under self-weight).
 # Laterally confined (slip sides: eps_xx = 0, and eps_zz = 0 in plane strain), so the column is
 # 1D: equilibrium d sigma_yy / dy = rho g with sigma_yy(H) = 0 gives sigma_yy = -rho g (H - y);
 # the elastic law with eps_xx = eps_zz = 0 gives sigma_yy = M eps_yy and
@@ -334,7 +334,7 @@ def test_confined_column_under_self_weight(poisson, cell):
 
 # =========================================================================== 3. column, free-standing
 #
-# Source: VALIDATION.md section 2, free-standing column. No lateral support, slip base.
+# Source: docs/validation.md §2, free-standing column. No lateral support, slip base.
 # sigma_xx = sigma_xy = 0, sigma_yy = -rho g (H - y) satisfies equilibrium and the free sides;
 # plane strain (eps_zz = 0) gives sigma_zz = nu (sigma_xx + sigma_yy) = nu sigma_yy, and
 #     eps_xx = -nu (1 + nu) sigma_yy / E,   eps_yy = (1 - nu^2) sigma_yy / E,
@@ -422,7 +422,7 @@ def test_free_standing_column_under_self_weight(cell):
 
 # =========================================================================== 4. objectivity
 #
-# Source: VALIDATION.md section 4 and SPEC section 2 (Jaumann rate, paper eq. for sigma_dot).
+# Source: docs/validation.md §4 (Jaumann rate, paper eq. for sigma_dot).
 # A free body cannot be held in rigid rotation by an explicit dynamic MPM: a uniform pre-stress
 # is not in equilibrium at free faces (they unload at the wave speed) and nothing supplies the
 # centripetal force except stress. Checked with a stiff block (E = 1 MPa, rho = 1000, omega = 1),

@@ -1,6 +1,6 @@
 """Gradients of probe histories against central finite differences, and no recompiling.
 
-VALIDATION.md section 8: every differentiable output is checked against central differences
+docs/validation.md §8: every differentiable output is checked against central differences
 in float64 with a relative step of about 1e-6 of the parameter.
 """
 
@@ -57,7 +57,7 @@ def test_probe_gradient_matches_central_differences(update, shape, name):
 def test_gradients_are_finite_with_empty_nodes_and_fixed_edges(shape):
     # Most of the grid is empty (zero-mass nodes) and two edges are constrained (with bspline2,
     # through mirrored ghost nodes): the guarded p / m must give finite gradients everywhere
-    # (PERFORMANCE.md: a peer returned NaN gradients exactly here).
+    # (a published JAX MPM returned NaN gradients exactly here).
     sim = shared_simulation("musl", shape)
     gradient = jax.grad(lambda p: jnp.sum(sim.final_state(p).particles.v ** 2))(sim.params)
     assert all(np.isfinite(value) for value in jax.tree_util.tree_leaves(gradient))

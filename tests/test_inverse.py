@@ -1,4 +1,4 @@
-"""Calibration (SPEC section 5): loss gradients, twin recovery, uncertainty, resume, bad input.
+"""Calibration: loss gradients, twin recovery, uncertainty, resume, bad input.
 
 The twin is a coarse version of examples/calibrate_twin_scene.toml: a heavy footing dropped on
 viscoplastic sand (truth: friction_angle 25, fluidity 5, exponent 2). Its settlement stays
@@ -99,7 +99,7 @@ def twin_observations(noise=0.0, seed=0):
 
 
 def test_loss_gradient_matches_central_differences():
-    # VALIDATION.md section 8: central differences, relative step 1e-6, float64.
+    # docs/validation.md §8: central differences, relative step 1e-6, float64.
     sim = twin_simulation()
     observations = twin_observations(noise=1e-5)
     space = ParameterSpace(sim.params, FIT)

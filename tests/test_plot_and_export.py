@@ -2,7 +2,7 @@
 
 The VTU files are read back with meshio, a reader independent of how we wrote them, and
 compared point by point with the HDF5 output; p and q are checked against the solver's own
-invariants (jaxmpm.tensors), a second implementation of the SPEC section 2 formulas.
+invariants (jaxmpm.tensors), a second implementation of the p and q formulas.
 """
 
 import xml.etree.ElementTree as ElementTree

@@ -1,4 +1,4 @@
-"""Scene files: round trip, and one clear error for every class of bad input (SPEC 7, 8)."""
+"""Scene files: round trip, and one clear error for every class of bad input (the scene format of jaxmpm.scene)."""
 
 import numpy as np
 import pytest

@@ -3,7 +3,7 @@
 Sources: Bardenhagen & Kober (2004) define uGIMP as the tent function averaged over the point's
 cell of half-width l; the quadratic B-spline is the tent averaged over a whole cell (Steffen,
 Kirby & Berzins 2008). Both are checked against those integrals, computed numerically here.
-Then the bar of VALIDATION.md section 1 (tests/test_elastic_validation.py) with each shape:
+Then the bar of docs/validation.md §1 (tests/test_elastic_validation.py) with each shape:
 second-order convergence for small motion, and for large motion (points crossing cells) the
 accuracy that linear shape functions lose.
 """
@@ -155,7 +155,7 @@ def test_smooth_shapes_keep_a_bar_accurate_where_points_cross_cells():
 def column_errors(poisson, cell, shape):
     """(max pointwise sigma_yy error / rho g H, relative settlement error, max |v|, lateral
     ratio error / rho g H) of the settled confined column (examples/elastic_column.toml, the
-    CB-Geo benchmark of VALIDATION.md section 2), with the exact sigma_yy = -rho g (H - y)."""
+    CB-Geo benchmark of docs/validation.md §2), with the exact sigma_yy = -rho g (H - y)."""
     from tests.test_elastic_validation import (
         COLUMN_HEIGHT, COLUMN_RHO, COLUMN_YOUNG, GRAVITY, constrained_modulus, settled_confined_column,
     )

@@ -34,9 +34,9 @@ region = { rectangle = [[0.0, 0.0], [1.0, 0.5]] }
 def test_geostatic_layer_stays_at_rest(ppc):
     # Equilibrium of the geostatic state: d sigma_yy / dy = rho g with sigma_yy = rho g_y depth,
     # sigma_xx = sigma_zz = K0 sigma_yy (Jaky: K0 = 1 - sin 30 = 0.5 > the yield limit
-    # (3 - m)/(3 + 2m) = 0.390 of VALIDATION.md section 3, so the state is elastic).
+    # (3 - m)/(3 + 2m) = 0.390 of docs/validation.md §3, so the state is elastic).
     # Measured against the scale of motion of the same layer released without initial stress,
-    # whose top settles towards rho g H^2 / (2 M) (VALIDATION.md section 2).
+    # whose top settles towards rho g H^2 / (2 M) (docs/validation.md §2).
     geostatic = LAYER.replace(
         'region = { rectangle = [[0.0, 0.0], [1.0, 0.5]] }',
         'region = { rectangle = [[0.0, 0.0], [1.0, 0.5]] }\ninitial_stress = { geostatic = { k0 = "jaky" } }',
@@ -80,7 +80,7 @@ def test_jaky_k0_follows_the_friction_angle_and_is_differentiable():
 
 def test_coarse_column_collapse_matches_published_deposit():
     # Bui et al. (2008) column, a = H0 / L0 = 0.5 (examples/column_collapse.toml) on a coarse
-    # grid. VALIDATION.md section 6: for a < 0.65 the final height equals the initial height,
+    # grid. docs/validation.md §6: for a < 0.65 the final height equals the initial height,
     # and the runout (L_inf - L0) / L0 = lambda a lies between lambda = 1.2 (Lube et al. 2005)
     # and 1.8 (Lajeunesse et al. 2005). Deposit edges: outermost point + half a spacing.
     from pathlib import Path

@@ -1,4 +1,4 @@
-"""Hypoelastic isotropic linear elasticity with the Jaumann rate (SPEC section 2).
+"""Hypoelastic isotropic linear elasticity with the Jaumann rate.
 
 sigma_jaumann = K tr(d) I + 2 G dev(d), with K = E / (3 (1 - 2 nu)), G = E / (2 (1 + nu)),
 d = sym(L). Used for walls and piles, and as the elastic part of the soil models.
