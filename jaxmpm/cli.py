@@ -2,8 +2,8 @@
 
     jaxmpm run SCENE.toml [-o OUT.h5] [--set sand.friction_angle=32 ...] [--quiet]
     jaxmpm calibrate CONFIG.toml [-o FIT.h5] [--resume] [--quiet]
-    jaxmpm plot OUT.h5 [-o OUT.png | .gif | .mp4] [--field q] [--snapshot -1] [--probes]
-    jaxmpm export OUT.h5 [-o OUT.pvd]
+    jaxmpm plot OUT.h5 [-o OUT.png | .gif | .mp4] [--field q] [--snapshot -1] [--probes] [--mirror]
+    jaxmpm export OUT.h5 [-o OUT.pvd] [--revolve N]
 
 Exit status: 0 done; 1 the run stopped early (the output file keeps what was computed, marked
 complete = false); 2 user error (one line naming the key and value, never a traceback);
@@ -55,9 +55,13 @@ def build_parser():
     plot.add_argument("--field", help="colour by this field (default q; e.g. p, plastic_strain, displacement, speed)")
     plot.add_argument("--snapshot", type=int, help="snapshot index for a PNG (default -1, the last)")
     plot.add_argument("--probes", action="store_true", help="plot the probe histories instead")
+    plot.add_argument("--mirror", action="store_true",
+                      help="axisymmetric runs: also draw the mirror image about the axis (the whole section)")
     export = commands.add_parser("export", help="write ParaView files (PVD + VTU) of a run's snapshots")
     export.add_argument("result", help="output HDF5 file of `jaxmpm run`")
     export.add_argument("-o", "--output", help="PVD file (default: RESULT name with .pvd)")
+    export.add_argument("--revolve", type=int, metavar="N",
+                        help="axisymmetric runs: write each point at N angles about the axis (a 3-D point cloud)")
     return parser
 
 
@@ -157,6 +161,8 @@ def plot_command(arguments):
     animation = output.suffix.lower() in (".gif", ".mp4")
     if arguments.probes and arguments.field is not None:
         raise SceneError(f"--field {arguments.field} colours snapshots; it does not apply to --probes.")
+    if arguments.probes and arguments.mirror:
+        raise SceneError("--mirror draws snapshots; it does not apply to --probes.")
     if (arguments.probes or animation) and arguments.snapshot is not None:
         raise SceneError(f"--snapshot {arguments.snapshot} picks the snapshot of a PNG; it does not apply to "
                          f"{'--probes' if arguments.probes else output.suffix}.")
@@ -164,12 +170,12 @@ def plot_command(arguments):
     if arguments.probes:
         plotting.save_probes(result, output)
     elif animation:
-        plotting.save_animation(result, output, arguments.field)
+        plotting.save_animation(result, output, arguments.field, mirror=arguments.mirror)
     else:
         count, snapshot = len(result.snapshots["time"]), -1 if arguments.snapshot is None else arguments.snapshot
         if not -count <= snapshot < count:
             raise SceneError(f"--snapshot {snapshot} is out of range: the file has {count} snapshots.")
-        plotting.save_snapshot(result, output, arguments.field, snapshot)
+        plotting.save_snapshot(result, output, arguments.field, snapshot, arguments.mirror)
     print(f"wrote {output}")
     return 0
 
@@ -181,7 +187,7 @@ def export_command(arguments):
     output = output_path(arguments.output, arguments.result, ".pvd")
     if output.suffix.lower() != ".pvd":
         raise SceneError(f"-o {str(output)!r}: the file type must be .pvd.")
-    export_paraview(result, output)
+    export_paraview(result, output, arguments.revolve)
     print(f"wrote {output} and its VTU files in {output.with_suffix('')}")
     return 0
 

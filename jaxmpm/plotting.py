@@ -4,9 +4,13 @@ probe histories.
     jaxmpm plot OUT.h5                          # OUT.png: the last snapshot, coloured by q
     jaxmpm plot OUT.h5 -o run.gif --field p     # every snapshot, one colour scale
     jaxmpm plot OUT.h5 --probes -o probes.png   # probe histories against time
+    jaxmpm plot OUT.h5 --mirror                 # axisymmetric run: the whole diametral section
 
-Field names are those of `jaxmpm.snapshots` (stored fields and p, q, sigma_xx, ..., speed).
-Points are drawn as squares of their initial spacing (h / ppc), so a body looks solid.
+Field names are those of `jaxmpm.snapshots` (stored fields and p, q, sigma_xx, ... or, in
+axisymmetry, sigma_rr, ..., speed). Points are drawn as squares of their initial spacing
+(h / ppc), so a body looks solid. In axisymmetry the axes are r and z, mass and volume are
+per radian, and force probes are the whole ring's (N); `mirror` also draws the section's
+mirror image about the axis (points at -r, same colours).
 """
 
 from __future__ import annotations
@@ -17,16 +21,18 @@ import numpy as np
 
 from jaxmpm.errors import SceneError
 from jaxmpm.files import atomic_path
-from jaxmpm.snapshots import Snapshots
+from jaxmpm.snapshots import STRESS_NAMES, Snapshots
 
 FORMATS = (".png", ".gif", ".mp4")
 PREFERRED_FIELDS = ("q", "plastic_strain", "displacement", "body")
-UNITS = {"p": "Pa", "q": "Pa", "sigma_xx": "Pa", "sigma_yy": "Pa", "sigma_xy": "Pa", "sigma_zz": "Pa",
+UNITS = {"p": "Pa", "q": "Pa", **{name: "Pa" for names in STRESS_NAMES.values() for name in names},
          "displacement": "m", "speed": "m/s", "plastic_strain": "-", "volume": "m^3/m", "mass": "kg/m"}
+PER_RADIAN_UNITS = {"volume": "m^3/rad", "mass": "kg/rad"}          # axisymmetry: per radian
 
 
 PROBE_UNITS = {"displacement": "m", "body_displacement": "m", "body_rotation": "rad",
                "contact_force": "N/m", "reaction": "N/m"}
+RING_PROBE_UNITS = {"contact_force": "N", "reaction": "N"}          # axisymmetry: the whole ring
 
 
 def pyplot():
@@ -42,6 +48,13 @@ def default_field(snapshots):
     return next(name for name in PREFERRED_FIELDS + tuple(scalars) if name in scalars)
 
 
+def field_unit(snapshots, field):
+    """The unit of a scalar field in this file's geometry (mass and volume per radian in axisymmetry)."""
+    if snapshots.axisymmetric and field in PER_RADIAN_UNITS:
+        return PER_RADIAN_UNITS[field]
+    return UNITS.get(field, "-")
+
+
 def check_output(path, allowed=FORMATS):
     suffix = Path(path).suffix.lower()
     if suffix not in allowed:
@@ -49,28 +62,51 @@ def check_output(path, allowed=FORMATS):
     return suffix
 
 
-def draw_points(axes, snapshots, field, index, limits):
-    """Scatter one snapshot on `axes` with squares of the point spacing; returns the artist."""
+def check_mirror(snapshots, mirror):
+    if mirror and not snapshots.axisymmetric:
+        raise SceneError("--mirror draws an axisymmetric section's mirror image about the axis; "
+                         "this run is plane strain.")
+
+
+def placed(snapshots, field, index, mirror):
+    """(positions (N, 2), values (N,)) to draw; with `mirror`, followed by the mirror images
+    (-r, z) of the points with the same values."""
+    positions, values = snapshots.positions(index), snapshots.field(field, index)
+    if mirror:
+        positions = np.concatenate([positions, positions * np.array([-1.0, 1.0])])
+        values = np.concatenate([values, values])
+    return positions, values
+
+
+def draw_points(axes, snapshots, field, index, limits, mirror=False):
+    """Scatter one snapshot on `axes` with squares of the point spacing; returns the artist.
+    With `mirror` (axisymmetry) the x-axis runs from -R to R and the points are drawn twice."""
     grid = snapshots.scene.grid
-    axes.set_xlim(grid.origin[0], grid.origin[0] + grid.size[0])
+    right = grid.origin[0] + grid.size[0]
+    left = -right if mirror else grid.origin[0]
+    axes.set_xlim(left, right)
     axes.set_ylim(grid.origin[1], grid.origin[1] + grid.size[1])
     axes.set_aspect("equal")
-    axes.set_xlabel("x [m]")
-    axes.set_ylabel("y [m]")
+    axes.set_xlabel("r [m]" if snapshots.axisymmetric else "x [m]")
+    axes.set_ylabel("z [m]" if snapshots.axisymmetric else "y [m]")
     figure = axes.figure
     figure.canvas.draw()                        # axes size in pixels is known after a draw
-    pixels_per_metre = axes.get_window_extent().width / grid.size[0]
+    pixels_per_metre = axes.get_window_extent().width / (right - left)
     side = grid.cell / snapshots.scene.numerics.ppc * pixels_per_metre * 72.0 / figure.dpi
-    positions = snapshots.positions(index)
-    return axes.scatter(
-        positions[:, 0], positions[:, 1], c=snapshots.field(field, index), s=side**2, marker="s",
+    positions, values = placed(snapshots, field, index, mirror)
+    artist = axes.scatter(
+        positions[:, 0], positions[:, 1], c=values, s=side**2, marker="s",
         linewidths=0, vmin=limits[0], vmax=limits[1], cmap="viridis",
     )
+    if mirror:
+        axes.axvline(0.0, color="0.4", linewidth=0.6, linestyle="-.")     # the axis
+    return artist
 
 
-def figure_size(scene):
-    """(width, height) [in] that fits the grid's aspect ratio beside a colour bar."""
-    aspect = scene.grid.size[1] / scene.grid.size[0]
+def figure_size(scene, mirror=False):
+    """(width, height) [in] that fits the grid's aspect ratio (twice as wide with the mirror
+    image) beside a colour bar."""
+    aspect = scene.grid.size[1] / (scene.grid.size[0] * (2.0 if mirror else 1.0))
     return 9.0, min(9.0, max(3.0, 7.0 * aspect + 1.2))
 
 
@@ -80,16 +116,18 @@ def colour_limits(snapshots, field, indices):
     return (low, high) if high > low else (low - 0.5, high + 0.5)
 
 
-def snapshot_figure(result, field=None, snapshot=-1):
+def snapshot_figure(result, field=None, snapshot=-1, mirror=False):
     """A matplotlib figure of snapshot `snapshot` coloured by `field` (default: q, else the
-    plastic strain, the displacement or the body)."""
+    plastic strain, the displacement or the body). `mirror` (axisymmetric runs only) also
+    draws the mirror image about the axis: the whole diametral section."""
     snapshots = Snapshots(result)
+    check_mirror(snapshots, mirror)
     field = field or default_field(snapshots)
     index = range(len(snapshots))[snapshot]
     plt = pyplot()
-    figure, axes = plt.subplots(figsize=figure_size(snapshots.scene), layout="constrained")
-    artist = draw_points(axes, snapshots, field, index, colour_limits(snapshots, field, [index]))
-    figure.colorbar(artist, ax=axes, label=f"{field} [{UNITS.get(field, '-')}]")
+    figure, axes = plt.subplots(figsize=figure_size(snapshots.scene, mirror), layout="constrained")
+    artist = draw_points(axes, snapshots, field, index, colour_limits(snapshots, field, [index]), mirror)
+    figure.colorbar(artist, ax=axes, label=f"{field} [{field_unit(snapshots, field)}]")
     axes.set_title(f"{snapshots.scene.name}: t = {snapshots.times[index]:.4g} s")
     return figure
 
@@ -103,13 +141,13 @@ def save_png(figure, path):
     return Path(path)
 
 
-def save_snapshot(result, path, field=None, snapshot=-1):
+def save_snapshot(result, path, field=None, snapshot=-1, mirror=False):
     """PNG of one snapshot, written atomically."""
     check_output(path, (".png",))
-    return save_png(snapshot_figure(result, field, snapshot), path)
+    return save_png(snapshot_figure(result, field, snapshot, mirror), path)
 
 
-def save_animation(result, path, field=None, fps=10):
+def save_animation(result, path, field=None, fps=10, mirror=False):
     """GIF (Pillow) or MP4 (ffmpeg) over every snapshot, one colour scale for all frames."""
     suffix = check_output(path, (".gif", ".mp4"))
     plt = pyplot()
@@ -119,15 +157,17 @@ def save_animation(result, path, field=None, fps=10):
     if not animation.writers.is_available(writer_name):
         raise SceneError(f"-o {str(path)!r}: writing {suffix} needs {writer_name}, which is not installed; use .gif.")
     snapshots = Snapshots(result)
+    check_mirror(snapshots, mirror)
     field = field or default_field(snapshots)
     limits = colour_limits(snapshots, field, range(len(snapshots)))
-    figure, axes = plt.subplots(figsize=figure_size(snapshots.scene), layout="constrained")
-    artist = draw_points(axes, snapshots, field, 0, limits)
-    figure.colorbar(artist, ax=axes, label=f"{field} [{UNITS.get(field, '-')}]")
+    figure, axes = plt.subplots(figsize=figure_size(snapshots.scene, mirror), layout="constrained")
+    artist = draw_points(axes, snapshots, field, 0, limits, mirror)
+    figure.colorbar(artist, ax=axes, label=f"{field} [{field_unit(snapshots, field)}]")
 
     def frame(index):
-        artist.set_offsets(snapshots.positions(index))
-        artist.set_array(snapshots.field(field, index))
+        positions, values = placed(snapshots, field, index, mirror)
+        artist.set_offsets(positions)
+        artist.set_array(values)
         axes.set_title(f"{snapshots.scene.name}: t = {snapshots.times[index]:.4g} s")
         return (artist,)
 
@@ -139,22 +179,27 @@ def save_animation(result, path, field=None, fps=10):
 
 
 def probes_figure(result):
-    """One panel per probe: its components against time."""
+    """One panel per probe: its components against time (r and z in axisymmetry, where the
+    force probes are the whole ring's, in N)."""
     if not result.probes:
         raise SceneError("the output file has no probes to plot: add [[probes]] to the scene.")
     from jaxmpm.scene import Scene
 
     plt = pyplot()
+    scene = Scene.from_toml(result.scene_toml)
+    axisymmetric = scene.geometry == "axisymmetric"
+    units = {**PROBE_UNITS, **RING_PROBE_UNITS} if axisymmetric else PROBE_UNITS
     names = list(result.probes)
-    kinds = {probe.name: probe.kind for probe in Scene.from_toml(result.scene_toml).probes}
+    kinds = {probe.name: probe.kind for probe in scene.probes}
     figure, panels = plt.subplots(len(names), 1, figsize=(8, 2.5 * len(names)), sharex=True,
                                   layout="constrained", squeeze=False)
     for axes, name in zip(panels[:, 0], names):
         values = np.asarray(result.probes[name]).reshape(len(result.time), -1)
-        labels = ["x", "y"] if values.shape[1] == 2 else [str(k) for k in range(values.shape[1])]
+        components = ["r", "z"] if axisymmetric else ["x", "y"]
+        labels = components if values.shape[1] == 2 else [str(k) for k in range(values.shape[1])]
         for component, label in enumerate(labels):
             axes.plot(result.time, values[:, component], label=label)
-        axes.set_ylabel(f"{name} [{PROBE_UNITS.get(kinds.get(name), '-')}]")
+        axes.set_ylabel(f"{name} [{units.get(kinds.get(name), '-')}]")
         axes.legend(loc="best")
     panels[-1, 0].set_xlabel("t [s]")
     return figure

@@ -10,10 +10,19 @@ observe(state, diagnostics, initial_x) -> {name: (k,) array}. Every probe is dif
     contact_force      (2,) force of the pair's first body on its second through their
                        contact, in the step that ended at this time [N per m of thickness]
     reaction           (2,) force that kept a prescribed body on its path in that step [N/m]
+
+In axisymmetry forces are whole-ring newtons, 2 pi times the per-radian force the grid holds:
+the z component is the ring's net axial force; the r component is its total outward radial
+force (2 pi times the radial force per radian), a measure of the radial push, not a net
+force (that is zero by symmetry).
 """
+
+import math
 
 import numpy as np
 import jax.numpy as jnp
+
+FULL_TURN = 2.0 * math.pi
 
 
 def nearest_point(seeds, at):
@@ -25,12 +34,13 @@ def make_probes(scene, seeds):
     readers = {}
     body_slices = {body.name: seeds.slices[index] for index, body in enumerate(scene.bodies)}
     declared = {frozenset(contact.pair): contact for contact in scene.contacts}
+    ring = FULL_TURN if scene.geometry == "axisymmetric" else 1.0       # forces per radian -> whole ring
     for probe in scene.probes:
         if probe.kind == "contact_force":
             contact = declared[frozenset(probe.pair)]
-            readers[probe.name] = _contact_force(contact.name, 1.0 if tuple(probe.pair) == contact.pair else -1.0)
+            readers[probe.name] = _contact_force(contact.name, ring if tuple(probe.pair) == contact.pair else -ring)
         elif probe.kind == "reaction":
-            readers[probe.name] = _reaction(probe.body)
+            readers[probe.name] = _reaction(probe.body, ring)
         elif probe.kind == "displacement":
             readers[probe.name] = _point_displacement(nearest_point(seeds, probe.at))
         elif probe.kind == "body_displacement":
@@ -53,9 +63,9 @@ def _contact_force(pair, sign):
     return read
 
 
-def _reaction(body):
+def _reaction(body, scale):
     def read(state, diagnostics, initial_x):
-        return diagnostics.reaction[body]
+        return scale * diagnostics.reaction[body]
 
     return read
 

@@ -1,10 +1,13 @@
 """Results of a forward run and their HDF5 file.
 
 File layout: root attributes `jaxmpm_version`, `scene` (TOML text), `complete` (bool),
-`message`; datasets /time (T,), /probes/NAME (T, k), /snapshots/time (S,),
-/snapshots/BODY/FIELD (S, N_body, ...). Tensor components are ordered (x, y, z), so
-stress[..., 2, 2] is sigma_zz. Files are written to a temporary name and renamed, so a reader
-never sees half a file.
+`message`, `geometry` ("plane_strain" or "axisymmetric") and `extent` ("per metre of
+thickness" or "per radian": what the stored mass and volume are per); datasets /time (T,),
+/probes/NAME (T, k), /snapshots/time (S,), /snapshots/BODY/FIELD (S, N_body, ...). Tensor
+components are ordered (x, y, z), so stress[..., 2, 2] is sigma_zz; in axisymmetry (r, z,
+theta), so it is the hoop stress. `geometry` and `extent` repeat what the scene says, for
+other readers; `load` reads files written before they existed. Files are written to a
+temporary name and renamed, so a reader never sees half a file.
 """
 
 from __future__ import annotations
@@ -16,6 +19,8 @@ import h5py
 import numpy as np
 
 from jaxmpm.files import atomic_path
+
+EXTENTS = {"plane_strain": "per metre of thickness", "axisymmetric": "per radian"}
 
 
 @dataclasses.dataclass
@@ -29,6 +34,13 @@ class Result:
     snapshots: dict
     complete: bool = True
     message: str = ""
+
+    @property
+    def geometry(self) -> str:
+        """"plane_strain" or "axisymmetric", as the scene says."""
+        from jaxmpm.scene import Scene
+
+        return Scene.from_toml(self.scene_toml).geometry
 
     @classmethod
     def from_run(cls, sim, probes, snapshots, steps_done, complete, message):
@@ -56,12 +68,14 @@ class Result:
         """Write the HDF5 file atomically (temporary file, then rename); returns the path."""
         from jaxmpm import __version__
 
-        path = Path(path)
+        path, geometry = Path(path), self.geometry
         with atomic_path(path) as temporary, h5py.File(temporary, "w") as file:
             file.attrs["jaxmpm_version"] = __version__
             file.attrs["scene"] = self.scene_toml
             file.attrs["complete"] = bool(self.complete)
             file.attrs["message"] = self.message
+            file.attrs["geometry"] = geometry
+            file.attrs["extent"] = EXTENTS[geometry]
             file.create_dataset("time", data=self.time)
             probes = file.create_group("probes")
             for name, values in self.probes.items():
@@ -76,12 +90,13 @@ class Result:
                     group.create_dataset(field, data=values, compression="gzip", compression_opts=4)
         return path
 
-    def plot(self, field=None, snapshot=-1):
+    def plot(self, field=None, snapshot=-1, mirror=False):
         """A matplotlib figure of one snapshot, points coloured by `field` (default q); see
-        `jaxmpm.plotting` (in Jupyter the returned figure shows itself)."""
+        `jaxmpm.plotting` (in Jupyter the returned figure shows itself). `mirror=True`
+        (axisymmetric runs) also draws the mirror image about the axis."""
         from jaxmpm.plotting import snapshot_figure
 
-        return snapshot_figure(self, field, snapshot)
+        return snapshot_figure(self, field, snapshot, mirror)
 
     def plot_probes(self):
         """A matplotlib figure of every probe history against time."""
@@ -89,11 +104,13 @@ class Result:
 
         return probes_figure(self)
 
-    def export(self, path) -> Path:
-        """ParaView files: `path` (.pvd) and a folder of one VTU file per snapshot."""
+    def export(self, path, revolve=None) -> Path:
+        """ParaView files: `path` (.pvd) and a folder of one VTU file per snapshot.
+        `revolve=N` (axisymmetric runs) writes every point at N angles about the axis, a 3-D
+        point cloud (see `jaxmpm.export`)."""
         from jaxmpm.export import export_paraview
 
-        return export_paraview(self, path)
+        return export_paraview(self, path, revolve)
 
     @classmethod
     def load(cls, path) -> Result:

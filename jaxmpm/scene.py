@@ -28,11 +28,8 @@ NUMERICS_CHOICES = {"shape": ("linear", "gimp", "bspline2"), "transfer": ("flip"
 SNAPSHOT_FIELDS = ("x", "v", "displacement", "stress", "plastic_strain", "volume", "mass")
 PROBE_KINDS = ("displacement", "body_displacement", "body_rotation", "contact_force", "reaction")
 KINEMATICS = ("free", "prescribed", "rigid")
+GEOMETRIES = ("plane_strain", "axisymmetric")
 NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")   # bodies, materials, probes: safe in HDF5 paths and --set
-# Keys of the scene format whose physics is not built yet: rejected with a clear message, not ignored.
-NOT_YET = {
-    "geometry": ("axisymmetric",),
-}
 
 
 # --------------------------------------------------------------------------- data classes
@@ -337,8 +334,6 @@ class _Table:
         self.used.add(name)
         value = convert(self.key(name), self.data[name], kind)
         if choices is not None and value not in choices:
-            if value in NOT_YET.get(name, ()):
-                raise SceneError(f"{self.key(name)} = {value!r} is not available yet in jaxmpm.")
             options = ", ".join(repr(choice) for choice in choices)
             raise SceneError(f"{self.key(name)} = {value!r} is not one of {options}.")
         return value
@@ -515,7 +510,7 @@ def scene_from_dict(data) -> Scene:
     head.known = [f.name for f in dataclasses.fields(Scene)]
     run = dict(
         name=head.get("name", "str", "scene"),
-        geometry=head.get("geometry", "str", "plane_strain", choices=("plane_strain",)),
+        geometry=head.get("geometry", "str", "plane_strain", choices=GEOMETRIES),
         gravity=head.get("gravity", "vec2", (0.0, -9.81)),
         duration=head.get("duration", "float"),
         cfl=head.get("cfl", "float", 0.4),
@@ -697,6 +692,29 @@ def check_kinematics(key: str, kinematics: Kinematics):
         raise SceneError(f"{key}.time = {times} must start at 0 and increase strictly.")
 
 
+def check_axisymmetric(scene: Scene):
+    """In axisymmetry x is the radius: the grid starts on the axis, whose edge holds the
+    radial velocity, gravity is axial, and no body turns in the (r, z) plane."""
+    grid = scene.grid
+    if grid.origin[0] != 0.0:
+        raise SceneError(
+            f"grid.origin = {list(grid.origin)}: in axisymmetry the grid starts on the axis, so origin[0] must be 0."
+        )
+    if grid.boundaries.left not in ("slip", "fixed"):
+        raise SceneError(
+            f"grid.boundaries.left = {grid.boundaries.left!r}: in axisymmetry the left edge is the axis, where "
+            "the radial velocity is zero; make it 'slip' (or 'fixed')."
+        )
+    if scene.gravity[0] != 0.0:
+        raise SceneError(f"scene.gravity = {list(scene.gravity)}: in axisymmetry gravity is axial, so gravity[0] must be 0.")
+    for index, body in enumerate(scene.bodies):
+        if body.kinematics.type == "rigid":
+            raise SceneError(
+                f"bodies[{index}].kinematics.type = 'rigid' is not available in axisymmetry (a ring cannot turn in "
+                "the (r, z) plane): use 'prescribed', or a stiff free body."
+            )
+
+
 def check_scene(scene: Scene):
     """Every check that needs no compiling. Raises SceneError naming the key and value."""
     check_range("scene.duration", scene.duration, low=0.0)
@@ -710,6 +728,10 @@ def check_scene(scene: Scene):
 
     grid = scene.grid
     check_range("grid.cell", grid.cell, low=0.0)
+    if scene.geometry not in GEOMETRIES:
+        raise SceneError(f"scene.geometry = {scene.geometry!r} is not one of {', '.join(map(repr, GEOMETRIES))}.")
+    if scene.geometry == "axisymmetric":
+        check_axisymmetric(scene)
     for axis, length in enumerate(grid.size):
         check_range(f"grid.size[{axis}]", length, low=0.0)
         cells = length / grid.cell

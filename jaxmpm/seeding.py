@@ -3,7 +3,8 @@
 Points sit at the centres of the ppc x ppc sub-cells of every grid cell, so the points of
 different bodies never coincide unless the bodies overlap. A point belongs to a body if its
 sub-cell centre lies inside the body's region; each point carries the sub-cell's area
-(h / ppc)^2 [m^3 per m of thickness in plane strain].
+(h / ppc)^2 [m^3 per m of thickness in plane strain], or in axisymmetry the sub-cell's area
+times its radius, r (h / ppc)^2 [m^3 per radian: the ring it stands for holds 2 pi times that].
 """
 
 import dataclasses
@@ -66,5 +67,7 @@ def seed_bodies(scene) -> Seeds:
         slices.append((start, start + len(chosen[-1])))
         start += len(chosen[-1])
     order = np.concatenate(chosen)
-    volume = (scene.grid.cell / scene.numerics.ppc) ** 2
-    return Seeds(positions[order], np.full(len(order), volume), tuple(slices))
+    volumes = np.full(len(order), (scene.grid.cell / scene.numerics.ppc) ** 2)
+    if scene.geometry == "axisymmetric":
+        volumes = volumes * positions[order, 0]
+    return Seeds(positions[order], volumes, tuple(slices))

@@ -136,6 +136,7 @@ class Simulation:
             fields=fields,
             interfaces=interfaces,
             point_spacing=scene.grid.cell / scene.numerics.ppc,
+            axisymmetric=scene.geometry == "axisymmetric",
         )
         self.params = scene_parameters(scene)
         self.step = make_step(self.structure)

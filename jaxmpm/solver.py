@@ -86,7 +86,8 @@ class Structure:
     used with transfer = "flip"; damping: local (Cundall) damping coefficient; update:
     "musl" | "usl"; bodies: the contiguous body blocks; fields: number of velocity fields on
     the grid; interfaces: the pairs of fields that meet (`contact.Interface`); point_spacing:
-    h / ppc [m] (a rigid body's points are squares of this side).
+    h / ppc [m] (a rigid body's points are squares of this side); axisymmetric: x is the
+    radius r, y the axial z, and the hoop terms exist (masses, volumes and forces per radian).
     """
 
     layout: GridLayout
@@ -101,6 +102,7 @@ class Structure:
     fields: int = 1
     interfaces: tuple[Interface, ...] = ()
     point_spacing: float = 0.0
+    axisymmetric: bool = False
 
     @property
     def has_kinematic_bodies(self):
@@ -158,8 +160,11 @@ def particles_to_grid(particles, stencil, offsets, field, structure):
     def channels(*columns, gradient=()):
         return jnp.stack(columns + (gradient if normals else ()), axis=1)
 
+    radial_force = mass * gravity[0]
+    if structure.axisymmetric:   # the hoop stress pulls the ring inwards: -V_p sigma_tt N_I / r_p
+        radial_force = radial_force - particles.volume * particles.stress[:, 2, 2] / point_radius(particles.x, structure)
     terms = [   # N_I [m, m v, m g] + dN_I/dx_j [0, 0, 0, -V sigma_xj, -V sigma_yj (, m delta_xj, m delta_yj)]
-        (weights, channels(mass, mass * velocity[:, 0], mass * velocity[:, 1], mass * gravity[0], mass * gravity[1],
+        (weights, channels(mass, mass * velocity[:, 0], mass * velocity[:, 1], radial_force, mass * gravity[1],
                            gradient=(zero, zero))),
         (gradients[..., 0], channels(zero, zero, zero, stress[:, 0, 0], stress[:, 1, 0], gradient=(mass, zero))),
         (gradients[..., 1], channels(zero, zero, zero, stress[:, 0, 1], stress[:, 1, 1], gradient=(zero, mass))),
@@ -180,6 +185,12 @@ def particles_to_grid(particles, stencil, offsets, field, structure):
         mass_gradient = fold_ghosts(nodes[..., 5:7], layout, mirror, scalars=0)
     nodes = fold_ghosts(nodes[..., :5], layout, structure.boundaries)
     return Nodes(nodes[..., 0], nodes[..., 1:3], nodes[..., 3:5], mass_gradient)
+
+
+def point_radius(positions, structure):
+    """(N,) radius r_p of each point [m], kept above 1e-3 of a point spacing so that 1 / r is
+    finite (with its gradient) even for a point that reaches the axis."""
+    return jnp.maximum(positions[:, 0], 1e-3 * structure.point_spacing)
 
 
 def safe_velocity(momentum, mass, floor):
@@ -376,21 +387,29 @@ def remap_velocity(particles, stencil, field, structure, mass, constrain, floor)
     return constrain(safe_velocity(fold_ghosts(momentum, layout, structure.boundaries, scalars=0), mass, floor))
 
 
-def velocity_gradient(stencil, velocity, field, layout):
-    """L_p = sum_I v_I (x) grad N_I in the point's field, embedded in 3x3 (plane strain: no
-    out-of-plane rate)."""
+def velocity_gradient(stencil, velocity, field, structure, positions):
+    """L_p = sum_I v_I (x) grad N_I in the point's field, embedded in 3x3: plane strain has no
+    out-of-plane rate; in axisymmetry L_tt = v_r / r = sum_I N_I v_rI / r_p (the hoop rate,
+    Sulsky & Schreyer 1996)."""
     support = stencil.weights.shape[1]
-    nodal = gather_from_nodes(layout, stencil.base, velocity, support, field)
+    nodal = gather_from_nodes(structure.layout, stencil.base, velocity, support, field)
     in_plane = sum_over_stencil(nodal[..., :, None] * stencil.gradients[..., None, :])
-    return jnp.pad(in_plane, ((0, 0), (0, 1), (0, 1)))
+    gradient = jnp.pad(in_plane, ((0, 0), (0, 1), (0, 1)))
+    if structure.axisymmetric:
+        radial = sum_over_stencil(stencil.weights * nodal[..., 0])
+        gradient = gradient.at[:, 2, 2].set(radial / point_radius(positions, structure))
+    return gradient
 
 
-def update_stress(params, particles, gradient, bodies, dt):
+def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
     """Each free body's material updates its own slice; volumes follow det(I + dt L).
     Prescribed and rigid bodies keep their stress and volume."""
     stresses, histories, stretches = [], [], []
-    # det(I + dt L) of the in-plane 2x2 block, written out (cheaper than an LU per point)
+    # det(I + dt L), written out (cheaper than an LU per point): the in-plane 2x2 block times
+    # the hoop stretch 1 + dt L_tt (which is 1 in plane strain, where L_tt = 0)
     stretch = (1.0 + dt * gradient[:, 0, 0]) * (1.0 + dt * gradient[:, 1, 1]) - dt * dt * gradient[:, 0, 1] * gradient[:, 1, 0]
+    if axisymmetric:
+        stretch = stretch * (1.0 + dt * gradient[:, 2, 2])
     for block, history in zip(bodies, particles.history):
         points = block.points
         if block.kinematics != "free":
@@ -470,11 +489,11 @@ def make_step(structure: Structure):
             velocity_new = jax.named_call(remap_velocity, name="remap_velocity")(
                 particles, stencil, field, structure, nodes.mass, constrain, floor
             )
-        gradient = velocity_gradient(stencil, velocity_new, field, layout)
+        gradient = velocity_gradient(stencil, velocity_new, field, structure, start)
         if structure.transfer == "apic":
             particles = particles.replace(affine=gradient[:, :2, :2])
         particles = jax.named_call(update_stress, name="update_stress")(
-            params["materials"], particles, gradient, structure.bodies, dt
+            params["materials"], particles, gradient, structure.bodies, dt, structure.axisymmetric
         )
         state = record_errors(state.replace(particles=particles), layout.outside(particles.x))
         return state, Diagnostics(contact_forces(structure, impulses, dt), reactions)

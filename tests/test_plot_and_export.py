@@ -2,7 +2,9 @@
 
 The VTU files are read back with meshio, a reader independent of how we wrote them, and
 compared point by point with the HDF5 output; p and q are checked against the solver's own
-invariants (jaxmpm.tensors), a second implementation of the p and q formulas.
+invariants (jaxmpm.tensors), a second implementation of the p and q formulas. An axisymmetric
+run (x is the radius r, y the axial z) has its own stress names and units, a mirrored plot and
+a revolved export, whose rotated vectors and stresses are projected back on e_r, e_z, e_theta.
 """
 
 import xml.etree.ElementTree as ElementTree
@@ -37,9 +39,66 @@ def two_bodies(tmp_path_factory):
     return result, result.save(tmp_path_factory.mktemp("run") / "two.h5")
 
 
-def joined(result, field, index):
+# A 0.1 m x 0.1 m soil cylinder on the axis, under a held (prescribed) cap, for a few steps.
+CYLINDER = """
+[scene]
+name = "cylinder"
+geometry = "axisymmetric"
+gravity = [0.0, -9.81]
+duration = 0.004
+output_every = 0.002
+snapshot_fields = ["x", "v", "stress", "plastic_strain", "volume", "mass"]
+
+[grid]
+origin = [0.0, 0.0]
+size = [0.2, 0.2]
+cell = 0.025
+boundaries = { left = "slip", right = "free", bottom = "fixed", top = "free" }
+
+[numerics]
+ppc = 2
+damping = 0.0
+
+[materials.soil]
+model = "linear_elastic"
+density = 1800.0
+young = 1.0e6
+poisson = 0.3
+
+[[bodies]]
+name = "cylinder"
+material = "soil"
+region = { rectangle = [[0.0, 0.0], [0.1, 0.1]] }
+
+[[bodies]]
+name = "cap"
+material = "soil"
+kinematics = { type = "prescribed", velocity = [0.0, 0.0] }
+region = { rectangle = [[0.0, 0.1], [0.1, 0.125]] }
+
+[[probes]]
+name = "top"
+kind = "displacement"
+at = [0.05, 0.1]
+
+[[probes]]
+name = "hold"
+kind = "reaction"
+body = "cap"
+"""
+RING = ("cylinder", "cap")
+
+
+@pytest.fixture(scope="module")
+def axisymmetric(tmp_path_factory):
+    """(Result, path of its HDF5 file) of the axisymmetric cylinder."""
+    result = jaxmpm.Simulation(jaxmpm.Scene.from_toml(CYLINDER)).run(progress=False)
+    return result, result.save(tmp_path_factory.mktemp("axi") / "cylinder.h5")
+
+
+def joined(result, field, index, bodies=("block", "cap")):
     """A stored field at a snapshot, the bodies joined in scene order (block, then cap)."""
-    return np.concatenate([result.snapshots[body][field][index] for body in ("block", "cap")])
+    return np.concatenate([result.snapshots[body][field][index] for body in bodies])
 
 
 def test_export_writes_a_vtu_per_snapshot_that_meshio_reads_back(two_bodies, tmp_path, capsys):
@@ -126,9 +185,16 @@ def test_cli_writes_png_gif_and_probe_plots(two_bodies, tmp_path):
         (["plot", "{run}", "--snapshot", "7"], ["--snapshot 7", "3 snapshots"]),
         (["plot", "{run}", "-o", "{tmp}/picture.jpg"], ["picture.jpg", ".png"]),
         (["export", "{run}", "-o", "{tmp}/out.vtk"], ["out.vtk", ".pvd"]),
+        (["plot", "{run}", "--mirror", "-o", "{tmp}/m.png"], ["--mirror", "plane strain"]),
+        (["plot", "{run}", "--mirror", "-o", "{tmp}/m.gif"], ["--mirror", "plane strain"]),
+        (["plot", "{axi}", "--probes", "--mirror", "-o", "{tmp}/p.png"], ["--mirror", "--probes"]),
+        (["export", "{run}", "--revolve", "8", "-o", "{tmp}/r.pvd"], ["--revolve 8", "plane strain"]),
+        (["export", "{axi}", "--revolve", "2", "-o", "{tmp}/r.pvd"], ["--revolve 2", "at least 3"]),
+        (["plot", "{axi}", "--field", "sigma_xx"], ["field 'sigma_xx'", "plane-strain", "sigma_rr, sigma_rz"]),
+        (["plot", "{run}", "--field", "sigma_tt"], ["field 'sigma_tt'", "axisymmetric", "sigma_xx, sigma_xy"]),
     ],
 )
-def test_plot_and_export_user_errors_exit_2_with_one_line(two_bodies, tmp_path, capsys, arguments, words):
+def test_plot_and_export_user_errors_exit_2_with_one_line(two_bodies, axisymmetric, tmp_path, capsys, arguments, words):
     import h5py
 
     (tmp_path / "notes.h5").write_text("not hdf5")
@@ -136,12 +202,13 @@ def test_plot_and_export_user_errors_exit_2_with_one_line(two_bodies, tmp_path, 
     with h5py.File(tmp_path / "other.h5", "w") as file:
         file["data"] = np.zeros(3)
     names = {"missing": tmp_path / "missing.h5", "not_hdf5": tmp_path / "notes.h5",
-             "not_jaxmpm": tmp_path / "other.h5", "run": two_bodies[1], "tmp": tmp_path}
+             "not_jaxmpm": tmp_path / "other.h5", "run": two_bodies[1], "axi": axisymmetric[1], "tmp": tmp_path}
     assert main([argument.format(**names) for argument in arguments]) == 2
     error = capsys.readouterr().err.strip()
     assert len(error.splitlines()) == 1 and "Traceback" not in error
     for word in words:
         assert word in error
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clash", "notes.h5", "other.h5"]   # nothing written
 
 
 def test_export_again_replaces_its_own_files_and_leaves_others(two_bodies, tmp_path):
@@ -152,3 +219,108 @@ def test_export_again_replaces_its_own_files_and_leaves_others(two_bodies, tmp_p
     (folder / "notes.txt").write_text("the user's")
     result.export(tmp_path / "run.pvd")
     assert sorted(p.name for p in folder.iterdir()) == ["notes.txt", "run_00000.vtu", "run_00001.vtu", "run_00002.vtu"]
+
+
+def test_axisymmetric_stress_names_units_and_labels(axisymmetric, two_bodies):
+    result, _ = axisymmetric
+    snapshots = Snapshots(result)
+    names = snapshots.names()
+    assert {"sigma_rr", "sigma_zz", "sigma_rz", "sigma_tt", "mass", "volume"} <= set(names)
+    assert not {"sigma_xx", "sigma_yy", "sigma_xy"} & set(names)
+    assert not {"sigma_rr", "sigma_rz", "sigma_tt"} & set(Snapshots(two_bodies[0]).names())
+    stress = joined(result, "stress", 2, RING)
+    assert np.any(stress[:, 2, 2] != 0.0) and np.any(stress[:, 0, 1] != 0.0)   # a real hoop and shear stress
+    for name, (row, column) in {"sigma_rr": (0, 0), "sigma_zz": (1, 1), "sigma_rz": (0, 1), "sigma_tt": (2, 2)}.items():
+        np.testing.assert_array_equal(snapshots.field(name, 2), stress[:, row, column])
+    with pytest.raises(jaxmpm.SceneError, match="field 'sigma_yy' is a plane-strain stress name"):
+        snapshots.field("sigma_yy", 2)
+    figure = result.plot(field="mass")
+    axes, bar = figure.axes
+    assert (axes.get_xlabel(), axes.get_ylabel(), bar.get_ylabel()) == ("r [m]", "z [m]", "mass [kg/rad]")
+    assert result.plot(field="volume").axes[1].get_ylabel() == "volume [m^3/rad]"
+    assert result.plot(field="sigma_tt").axes[1].get_ylabel() == "sigma_tt [Pa]"
+    figure = result.plot_probes()
+    assert [axes.get_ylabel() for axes in figure.axes] == ["top [m]", "hold [N]"]
+    assert [line.get_label() for line in figure.axes[1].lines] == ["r", "z"]
+    np.testing.assert_array_equal(figure.axes[1].lines[1].get_ydata(), result.probes["hold"][:, 1])
+    assert two_bodies[0].plot().axes[0].get_xlabel() == "x [m]"
+    plotting.pyplot().close("all")
+
+
+def test_mirror_plot_shows_the_whole_diametral_section(axisymmetric, tmp_path):
+    from PIL import Image
+
+    result, path = axisymmetric
+    figure = result.plot(field="sigma_tt", snapshot=1, mirror=True)
+    axes = figure.axes[0]
+    right = jaxmpm.Scene.from_toml(CYLINDER).grid.size[0]
+    assert axes.get_xlim() == (-right, right)
+    points, section = axes.collections[0], joined(result, "x", 1, RING)
+    np.testing.assert_array_equal(points.get_offsets(), np.concatenate([section, section * [-1.0, 1.0]]))
+    hoop = joined(result, "stress", 1, RING)[:, 2, 2]
+    np.testing.assert_array_equal(points.get_array(), np.concatenate([hoop, hoop]))
+    plotting.pyplot().close(figure)
+    assert main(["plot", str(path), "--mirror", "-o", str(tmp_path / "whole.png")]) == 0
+    assert Image.open(tmp_path / "whole.png").size[0] > 100
+    assert main(["plot", str(path), "--mirror", "-o", str(tmp_path / "whole.gif")]) == 0
+    assert Image.open(tmp_path / "whole.gif").n_frames == len(result.snapshots["time"])
+
+
+def test_revolved_export_turns_points_vectors_and_stresses_about_the_axis(axisymmetric, tmp_path):
+    meshio = pytest.importorskip("meshio")
+    result, path = axisymmetric
+    turns = 5
+    assert main(["export", str(path), "--revolve", str(turns), "-o", str(tmp_path / "ring.pvd")]) == 0
+    flat = meshio.read(result.export(tmp_path / "flat.pvd").with_suffix("") / "flat_00002.vtu")
+    np.testing.assert_array_equal(flat.points[:, :2], joined(result, "x", 2, RING))   # the section: (r, z, 0)
+    assert np.all(flat.points[:, 2] == 0.0)
+    theta = 2 * np.pi * np.arange(turns)[:, None] / turns
+    e_r = np.stack([np.cos(theta), np.sin(theta), 0 * theta], axis=-1)            # (turns, 1, 3)
+    e_t = np.stack([-np.sin(theta), np.cos(theta), 0 * theta], axis=-1)
+    e_z = np.broadcast_to([0.0, 0.0, 1.0], e_r.shape)
+    for index in range(len(result.snapshots["time"])):
+        mesh = meshio.read(tmp_path / "ring" / f"ring_{index:05d}.vtu")
+        x, v, stress = (joined(result, name, index, RING) for name in ("x", "v", "stress"))
+        count = len(x)
+        points = mesh.points.reshape(turns, count, 3)
+        np.testing.assert_allclose(np.hypot(points[..., 0], points[..., 1]), np.broadcast_to(x[:, 0], (turns, count)),
+                                   rtol=0, atol=1e-12)
+        np.testing.assert_allclose(points[..., 2], np.broadcast_to(x[:, 1], (turns, count)), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(np.sum(points * e_t, axis=-1), 0.0, atol=1e-12)          # at angle theta_k
+        np.testing.assert_allclose(np.sum(points * e_r, axis=-1), np.broadcast_to(x[:, 0], (turns, count)), atol=1e-12)
+        turned = mesh.point_data["v"].reshape(turns, count, 3)
+        for direction, expected in ((e_r, v[:, 0]), (e_z, v[:, 1]), (e_t, 0.0 * v[:, 0])):
+            np.testing.assert_allclose(np.sum(turned * direction, axis=-1), np.broadcast_to(expected, (turns, count)),
+                                       rtol=0, atol=1e-12 * np.max(np.abs(v)))
+        cartesian = mesh.point_data["stress"].reshape(turns, count, 3, 3)
+        scale = 1e-12 * np.max(np.abs(stress))
+        for (a, b), (row, column) in {(0, 0): (e_r, e_r), (1, 1): (e_z, e_z), (2, 2): (e_t, e_t), (0, 1): (e_r, e_z),
+                                      (0, 2): (e_r, e_t), (1, 2): (e_z, e_t)}.items():
+            projected = np.einsum("kni,knij,knj->kn", np.broadcast_to(row, (turns, count, 3)), cartesian,
+                                  np.broadcast_to(column, (turns, count, 3)))
+            np.testing.assert_allclose(projected, np.broadcast_to(stress[:, a, b], (turns, count)), rtol=0, atol=scale)
+        np.testing.assert_array_equal(mesh.point_data["body"], np.tile(np.repeat([0, 1], [
+            len(result.snapshots["cylinder"]["x"][index]), len(result.snapshots["cap"]["x"][index])]), turns))
+        np.testing.assert_array_equal(mesh.point_data["mass"], np.tile(joined(result, "mass", index, RING), turns))
+        np.testing.assert_allclose(mesh.point_data["q"], np.tile(tensors.von_mises(jnp.asarray(stress)), turns),
+                                   rtol=1e-10)
+    assert len(ElementTree.parse(tmp_path / "ring.pvd").getroot().findall("Collection/DataSet")) == 3
+
+
+def test_hdf5_says_its_geometry_and_extent_and_older_files_still_load(axisymmetric, two_bodies, tmp_path):
+    import shutil
+
+    import h5py
+
+    for (result, path), geometry, extent in ((axisymmetric, "axisymmetric", "per radian"),
+                                             (two_bodies, "plane_strain", "per metre of thickness")):
+        with h5py.File(path, "r") as file:
+            assert (file.attrs["geometry"], file.attrs["extent"]) == (geometry, extent)
+        assert result.geometry == geometry
+    older = shutil.copy(axisymmetric[1], tmp_path / "older.h5")          # as written before these attributes
+    with h5py.File(older, "r+") as file:
+        del file.attrs["geometry"], file.attrs["extent"]
+    loaded = jaxmpm.Result.load(older)
+    assert loaded.geometry == "axisymmetric" and loaded.scene_toml == axisymmetric[0].scene_toml
+    np.testing.assert_array_equal(loaded.snapshots["cylinder"]["stress"],
+                                  axisymmetric[0].snapshots["cylinder"]["stress"])

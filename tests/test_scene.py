@@ -45,7 +45,7 @@ def test_with_value_changes_one_value():
 
 
 BAD_INPUTS = [
-    # (what is changed, replacement, words the message must contain)
+    # (what is changed, (old, new, old, new, ...) replacements, words the message must contain)
     ("unknown key", ("cell = 0.05", "cell = 0.05\ncel = 0.1"), ["grid.cel", "did you mean 'cell'"]),
     ("unknown section key", ("[numerics]", "[numerics]\nshape_function = 'linear'"), ["numerics.shape_function"]),
     ("wrong type", ("duration = 0.01", 'duration = "long"'), ["scene.duration", "'long'", "number"]),
@@ -61,7 +61,11 @@ BAD_INPUTS = [
     ("grid not whole cells", ("cell = 0.05", "cell = 0.07"), ["grid.size", "grid.cell = 0.07"]),
     ("dt above limit", ("duration = 0.01", "duration = 0.01\ndt = 0.01"), ["scene.dt", "0.01", "stable limit"]),
     ("unknown model", ('model = "linear_elastic"', 'model = "rubber"'), ["materials.soil.model", "'rubber'"]),
-    ("not built yet", ('[scene]', '[scene]\ngeometry = "axisymmetric"'), ["scene.geometry", "'axisymmetric'", "not available yet"]),
+    ("unknown geometry", ('[scene]', '[scene]\ngeometry = "spherical"'), ["scene.geometry", "'spherical'", "'axisymmetric'"]),
+    ("axis not held", ('[scene]\n', '[scene]\ngeometry = "axisymmetric"\n', 'left = "slip"', 'left = "free"'),
+     ["grid.boundaries.left = 'free'", "axis"]),
+    ("radial gravity", ('[scene]\n', '[scene]\ngeometry = "axisymmetric"\n', 'gravity = [0.0, -9.81]', 'gravity = [1.0, -9.81]'),
+     ["scene.gravity = [1.0, -9.81]", "axial"]),
     ("unknown shape", ('[numerics]', '[numerics]\nshape = "bspline3"'), ["numerics.shape", "'bspline3'", "'gimp'"]),
     ("bad TOML", ("[grid]", "[grid"), ["not valid TOML"]),
     ("unknown probe body", ('body = "block"', 'body = "wall"'), ["probes[1].body", "'wall'"]),
@@ -73,10 +77,12 @@ BAD_INPUTS = [
 
 @pytest.mark.parametrize("change, replacement, words", BAD_INPUTS, ids=[case[0] for case in BAD_INPUTS])
 def test_bad_input_gives_one_clear_sentence(change, replacement, words):
-    old, new = replacement
-    assert old in BLOCK
+    text = BLOCK
+    for old, new in zip(replacement[::2], replacement[1::2]):
+        assert old in text
+        text = text.replace(old, new, 1)
     with pytest.raises(SceneError) as caught:
-        jaxmpm.Scene.from_toml(BLOCK.replace(old, new, 1))
+        jaxmpm.Scene.from_toml(text)
     message = str(caught.value)
     assert "\n" not in message
     for word in words:

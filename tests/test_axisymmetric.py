@@ -1,0 +1,230 @@
+"""Axisymmetric MPM (Sulsky & Schreyer 1996): x is the radius r, y the axial z, the axis at
+r = 0 is a symmetry edge. Masses, volumes and forces are per radian (probes of force report
+the whole ring, 2 pi times). Closed forms from docs/validation.md §2, §10, §11.
+"""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+import jaxmpm
+from jaxmpm import (
+    Body, Boundaries, Grid, Kinematics, LinearElastic, Numerics, Probe, Rectangle, Scene, SceneError,
+)
+
+RHO, YOUNG, NU, G = 1800.0, 1.0e6, 0.3, 9.81
+
+
+def cylinder_scene(bodies, size, cell, boundaries, duration=0.01, damping=0.0, gravity=(0.0, -G), probes=(),
+                   shape="linear", transfer="flip", output_every=None):
+    return Scene(
+        name="cylinder",
+        geometry="axisymmetric",
+        grid=Grid(size=size, cell=cell, boundaries=boundaries),
+        materials={"soil": LinearElastic(density=RHO, young=YOUNG, poisson=NU),
+                   "steel": LinearElastic(density=7800.0, young=2e11, poisson=0.3)},
+        bodies=bodies,
+        duration=duration,
+        output_every=output_every or duration,
+        gravity=gravity,
+        snapshot_fields=("x", "v", "stress", "mass"),
+        numerics=Numerics(ppc=2, damping=damping, shape=shape, transfer=transfer),
+        probes=probes,
+    )
+
+
+@pytest.mark.parametrize("inner", [0.0, 0.1])
+def test_ring_masses_integrate_the_solid_of_revolution(inner):
+    # Each point stands for a ring: 2 pi sum m_p = rho pi (R2^2 - R1^2) H. The points sit at
+    # sub-cell centres, where the midpoint rule integrates r dr exactly.
+    outer, height = 0.3, 0.2
+    scene = cylinder_scene(
+        (Body("soil", "soil", Rectangle((inner, 0.0), (outer, height))),), (0.4, 0.3), 0.02,
+        Boundaries("slip", "slip", "fixed", "free"),
+    )
+    mass = np.asarray(jaxmpm.Simulation(scene).initial_state().particles.mass)
+    assert 2 * math.pi * mass.sum() == pytest.approx(RHO * math.pi * (outer**2 - inner**2) * height, rel=1e-12)
+
+
+def cell_means(positions, cell, values):
+    """Mean of `values` over the points of each grid cell (by initial position)."""
+    index = np.floor(positions / cell + 1e-9).astype(np.int64)
+    _, inverse = np.unique(index, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    count = np.bincount(inverse)
+    return np.stack([np.bincount(inverse, column) / count for column in np.atleast_2d(values.T)], axis=1)
+
+
+@pytest.mark.parametrize("cell", [0.01, 0.005])
+def test_free_standing_cylinder_under_self_weight(cell):
+    # docs/validation.md §2: a cylinder on a slip base with a free side carries
+    # sigma_zz = -rho g (H - z), sigma_rr = sigma_tt = 0, and bulges by
+    # u_r = nu rho g (H - z) r / E (eps_tt = u_r / r = -nu sigma_zz / E). The hoop terms
+    # (sigma_tt N / r in the force, v_r / r in the rate) must be right for sigma_tt = 0 and
+    # for u_r to grow linearly in r. A slender cylinder (R = 0.02 m, H = 0.2 m) keeps the base's
+    # Saint-Venant zone small; checks above z = 2R, on cell means (linear shape functions
+    # alternate between the rows of a cell, as in plane strain).
+    radius, height = 0.02, 0.2
+    scene = cylinder_scene(
+        (Body("column", "soil", Rectangle((0.0, 0.0), (radius, height))),),
+        (radius + 2 * cell, height + 2 * cell), cell, Boundaries("slip", "free", "slip", "free"),
+        duration=0.3, damping=0.7,
+    )
+    result = jaxmpm.Simulation(scene).run(progress=False)
+    final = result.snapshots["column"]
+    positions = np.asarray(jaxmpm.Simulation(scene).seeds.positions)
+    stress, moved = final["stress"][-1], final["x"][-1] - positions
+    base = RHO * G * height
+    assert np.max(np.abs(final["v"][-1])) < 1e-5
+    above = positions[:, 1] >= 2 * radius
+    columns = np.stack([positions[above, 1], stress[above, 0, 0], stress[above, 1, 1], stress[above, 2, 2],
+                        stress[above, 0, 1]], axis=1)
+    z, rr, zz, tt, rz = cell_means(positions[above], cell, columns).T
+    allowance = 5e-3 * base
+    assert np.max(np.abs(zz + RHO * G * (height - z))) <= allowance
+    assert np.max(np.abs(rr)) <= allowance
+    assert np.max(np.abs(tt)) <= allowance
+    assert np.max(np.abs(rz)) <= allowance
+    exact_ur = NU * RHO * G * (height - positions[above, 1]) * positions[above, 0] / YOUNG
+    largest = NU * RHO * G * height * radius / YOUNG
+    assert np.max(np.abs(moved[above, 0] - exact_ur)) <= 0.03 * largest
+
+
+@pytest.mark.parametrize("shape", ["linear", "gimp", "bspline2"])
+def test_confined_column_matches_plane_strain(shape):
+    # docs/validation.md §2: radially confined (slip at r = R and on the axis), every ring is in
+    # uniaxial strain, the plane-strain answer: sigma_zz = -rho g (H - z),
+    # sigma_rr = sigma_tt = nu / (1 - nu) sigma_zz. Point by point against the same column
+    # in plane strain (same grid, same points): equal to round-off is not expected (masses
+    # differ by r), but cell means agree with each other and with the closed form. With gimp and
+    # bspline2 the ghost nodes beyond the axis mirror the nodes inside it.
+    cell, width, height = 0.01, 0.1, 0.1
+    bodies = (Body("column", "soil", Rectangle((0.0, 0.0), (width, height))),)
+    edges = Boundaries("slip", "slip", "fixed", "free")
+    axisymmetric = cylinder_scene(bodies, (width, height + 2 * cell), cell, edges, duration=0.3, damping=0.7, shape=shape)
+    plane = dataclasses.replace(axisymmetric, geometry="plane_strain")
+    means = []
+    for scene in (axisymmetric, plane):
+        sim = jaxmpm.Simulation(scene)
+        stress = np.asarray(sim.final_state().particles.stress)
+        positions = np.asarray(sim.seeds.positions)
+        columns = np.stack([positions[:, 1], stress[:, 0, 0], stress[:, 1, 1], stress[:, 2, 2]], axis=1)
+        means.append(cell_means(positions, cell, columns))
+    base = RHO * G * height
+    for z, rr, zz, tt in (m.T for m in means):
+        exact = -RHO * G * (height - z)
+        assert np.max(np.abs(zz - exact)) <= 0.02 * base
+        assert np.max(np.abs(rr - NU / (1 - NU) * exact)) <= 0.02 * base
+        assert np.max(np.abs(tt - NU / (1 - NU) * exact)) <= 0.02 * base
+    np.testing.assert_allclose(means[0], means[1], atol=0.01 * base)
+
+
+def test_expanding_cavity_follows_lame():
+    # docs/validation.md §11: an elastic annulus a < r < b, held at r = b, plane strain along z
+    # (slip top and bottom), pushed out at r = a by a prescribed ring moving radially (bonded:
+    # no contact pair). Every axisymmetric elastic field without body force is u = A r + B / r,
+    # so sigma_rr + sigma_tt = 4 (lambda + G) A is the same at every radius while sigma_tt -
+    # sigma_rr = 4 G B / r^2 varies. A and B are fitted to the points' displacements (away from
+    # the ring); the stresses must follow from them, and u(b) = 0.
+    cell, inner, outer, height = 0.01, 0.05, 0.3, 0.04
+    expansion = 2e-4
+    ramp = 0.05
+    scene = cylinder_scene(
+        (Body("ring", "steel", Rectangle((inner - 2 * cell, 0.0), (inner, height)),
+              kinematics=Kinematics("prescribed", ((expansion / ramp, 0.0), (expansion / ramp, 0.0), (0.0, 0.0), (0.0, 0.0)),
+                                    (0.0, ramp, ramp + 1e-9, 10.0))),
+         Body("soil", "soil", Rectangle((inner, 0.0), (outer, height)))),
+        (outer, height), cell, Boundaries("slip", "fixed", "slip", "slip"),
+        duration=0.3, damping=0.5, gravity=(0.0, 0.0), probes=(Probe("push", "reaction", body="ring"),),
+    )
+    sim = jaxmpm.Simulation(scene)
+    final = sim.final_state()
+    start, stop = sim.seeds.slices[1]
+    r0 = np.asarray(sim.seeds.positions[start:stop, 0])
+    u = np.asarray(final.particles.x[start:stop, 0]) - r0
+    stress = np.asarray(final.particles.stress[start:stop])
+    away = r0 > inner + 3 * cell
+    (a_fit, b_fit), *_ = np.linalg.lstsq(np.stack([r0[away], 1.0 / r0[away]], axis=1), u[away], rcond=None)
+    assert np.max(np.abs(a_fit * r0[away] + b_fit / r0[away] - u[away])) < 0.02 * np.max(np.abs(u))
+    assert abs(a_fit * outer + b_fit / outer) < 0.02 * np.max(np.abs(u))           # held at r = b
+    shear = YOUNG / (2 * (1 + NU))
+    lame = YOUNG * NU / ((1 + NU) * (1 - 2 * NU))
+    r = r0[away]
+    exact_rr = 2 * lame * a_fit + 2 * shear * (a_fit - b_fit / r**2)
+    exact_tt = 2 * lame * a_fit + 2 * shear * (a_fit + b_fit / r**2)
+    scale = np.max(np.abs(exact_tt - exact_rr))
+    rows = np.stack([r, stress[away, 0, 0], stress[away, 2, 2]], axis=1)
+    means = cell_means(np.stack([r, np.asarray(sim.seeds.positions[start:stop, 1])[away]], axis=1), cell, rows)
+    exact_means = cell_means(np.stack([r, np.asarray(sim.seeds.positions[start:stop, 1])[away]], axis=1), cell,
+                             np.stack([exact_rr, exact_tt], axis=1))
+    assert np.max(np.abs(means[:, 1] - exact_means[:, 0])) < 0.03 * scale
+    assert np.max(np.abs(means[:, 2] - exact_means[:, 1])) < 0.03 * scale
+
+
+def test_prescribed_velocity_sends_a_stress_step_down_a_confined_rod():
+    # docs/validation.md §10: a rod confined radially (slip at r = R), held at its base and
+    # pushed down at its top by a prescribed plate at v: behind the front (speed
+    # c_p = sqrt((K + 4G/3) / rho)) the axial stress is -rho c_p v; uniaxial strain, so
+    # sigma_rr = sigma_tt = nu / (1 - nu) sigma_zz. Read at half the transit time.
+    cell, radius, length, speed = 0.01, 0.05, 1.0, 0.01
+    modulus = YOUNG * (1 - NU) / ((1 + NU) * (1 - 2 * NU))
+    wave = math.sqrt(modulus / RHO)
+    duration = 0.5 * length / wave
+    scene = cylinder_scene(
+        (Body("rod", "soil", Rectangle((0.0, 0.0), (radius, length))),
+         Body("plate", "steel", Rectangle((0.0, length), (radius, length + 2 * cell)),
+              kinematics=Kinematics("prescribed", (0.0, -speed)))),
+        (radius, length + 4 * cell), cell, Boundaries("slip", "slip", "fixed", "free"),
+        duration=duration, gravity=(0.0, 0.0), transfer="apic",
+        probes=(Probe("head", "reaction", body="plate"),),
+    )
+    sim = jaxmpm.Simulation(scene)
+    probes = sim.probes()
+    final = sim.final_state()
+    start, stop = sim.seeds.slices[0]
+    z = np.asarray(sim.seeds.positions[start:stop, 1])
+    stress = np.asarray(final.particles.stress[start:stop])
+    front = length - wave * duration
+    behind = (z > front + 0.1) & (z < length - 0.1)
+    ahead = z < front - 0.1
+    expected = -RHO * wave * speed
+    assert np.mean(stress[behind, 1, 1]) == pytest.approx(expected, rel=0.03)
+    assert np.max(np.abs(stress[ahead, 1, 1])) < 0.05 * abs(expected)
+    assert np.mean(stress[behind, 2, 2]) == pytest.approx(NU / (1 - NU) * expected, rel=0.05)
+    # The plate's reaction (what drives it down against the rod) is the whole disc's force,
+    # sigma_zz pi R^2 = -rho c v pi R^2 (no gravity, constant velocity).
+    head = np.asarray(probes["head"][-len(sim.time) // 4 :, 1]).mean()
+    assert head == pytest.approx(-RHO * wave * speed * math.pi * radius**2, rel=0.02)
+
+
+def test_axial_translation_keeps_a_prestressed_cylinder_unchanged():
+    # A cylinder pre-stressed to sigma_rr = sigma_tt = -p (held by a slip wall at r = R;
+    # in equilibrium: d sigma_rr / dr + (sigma_rr - sigma_tt) / r = 0) moving along the axis at
+    # 1 m/s: a rigid axial translation, so its stress stays -p, -p, 0 and it keeps its radius.
+    cell, radius, height, pressure = 0.01, 0.1, 0.1, 1e4
+    scene = cylinder_scene(
+        (Body("core", "soil", Rectangle((0.0, 0.1), (radius, 0.1 + height))),),
+        (radius, 0.4), cell, Boundaries("slip", "slip", "free", "free"),
+        duration=0.1, gravity=(0.0, 0.0), transfer="apic",
+    )
+    sim = jaxmpm.Simulation(scene)
+    state = sim.initial_state()
+    count = sim.point_count
+    stress = np.zeros((count, 3, 3))
+    stress[:, 0, 0] = stress[:, 2, 2] = -pressure
+    velocity = np.tile([0.0, 1.0], (count, 1))
+    state = state.replace(particles=state.particles.replace(stress=stress, v=velocity))
+    final = sim.final_state(initial=state)
+    moved = np.asarray(final.particles.x - state.particles.x)
+    assert np.allclose(moved[:, 1], 0.1, rtol=1e-6)
+    assert np.max(np.abs(moved[:, 0])) < 1e-6 * radius
+    assert np.max(np.abs(np.asarray(final.particles.stress) - stress)) < 1e-6 * pressure
+
+
+def test_rigid_bodies_are_refused_in_axisymmetry():
+    scene = cylinder_scene((Body("soil", "soil", Rectangle((0.0, 0.0), (0.1, 0.1))),), (0.2, 0.2), 0.02,
+                           Boundaries("slip", "slip", "fixed", "free"))
+    with pytest.raises(SceneError, match="'rigid' is not available in axisymmetry"):
+        dataclasses.replace(scene, bodies=(dataclasses.replace(scene.bodies[0], kinematics=Kinematics("rigid")),))
