@@ -225,8 +225,8 @@ def test_rigid_body_comes_to_rest_on_sand():
             Body("footing", "steel", Rectangle((0.2, 0.2), (0.4, 0.24)), kinematics=Kinematics("rigid")),
         ),
         contacts=(Contact(("sand", "footing"), 0.5),),
-        duration=0.3,
-        output_every=0.1,
+        duration=0.15,
+        output_every=0.05,
         numerics=Numerics(ppc=2, transfer="apic", damping=0.2),
         probes=(
             Probe("bearing", "contact_force", pair=("sand", "footing")),
