@@ -2,6 +2,25 @@
 promotion, so an accidental mix of dtypes inside the solver is an error, not a silent upcast."""
 
 import jax
+import pytest
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+
+@pytest.fixture
+def count_step_traces():
+    """count_step_traces(sim) -> a list that grows by one each time `sim`'s step is traced
+    (a guard against recompiling when only parameter values change)."""
+
+    def install(sim):
+        traces, step = [], sim.step
+
+        def counting_step(params, state):
+            traces.append(1)
+            return step(params, state)
+
+        sim.step = counting_step
+        return traces
+
+    return install
