@@ -30,7 +30,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxmpm  # noqa: E402
-from jaxmpm.files import atomic_path  # noqa: E402
+from jaxmpm.plotting import save_png  # noqa: E402
 from jaxmpm.snapshots import Snapshots  # noqa: E402
 
 ACTIVE_SCENE = "retaining_wall_active"
@@ -295,10 +295,8 @@ def summary(result, setup):
 
 
 def save(figure, path):
-    """Write a PNG atomically and close the figure."""
-    with atomic_path(path) as temporary:
-        figure.savefig(temporary, dpi=DPI, format="png")
-    plt.close(figure)
+    """Write a PNG atomically (jaxmpm's writer) and close the figure."""
+    save_png(figure, path, dpi=DPI)
     print(f"wrote {path}")
 
 

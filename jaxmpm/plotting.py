@@ -132,11 +132,11 @@ def snapshot_figure(result, field=None, snapshot=-1, mirror=False):
     return figure
 
 
-def save_png(figure, path):
+def save_png(figure, path, dpi=120):
     """Write a figure as PNG atomically, then close it."""
     check_output(path, (".png",))
     with atomic_path(path) as temporary:
-        figure.savefig(temporary, dpi=120, format="png")
+        figure.savefig(temporary, dpi=dpi, format="png")
     pyplot().close(figure)
     return Path(path)
 
