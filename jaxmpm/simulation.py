@@ -196,6 +196,14 @@ class Simulation:
                     f"but the one fixed from the scene is {self.dt:.4g} s: build the Simulation from a scene "
                     f"holding these values (scene.with_value) or lower scene.cfl."
                 )
+        for body, values in params.get("bodies", {}).items():
+            speed = float(np.max(np.hypot(*np.reshape(np.asarray(values["velocity"]), (-1, 2)).T)))
+            if speed * self.dt > self.scene.grid.cell * (1.0 + STEP_SLACK):
+                raise SceneError(
+                    f"params['bodies'][{body!r}]['velocity'] reaches {speed:.4g} m/s, which moves the body more than "
+                    f"a cell ({self.scene.grid.cell:g} m) in the fixed time step {self.dt:.4g} s: build the "
+                    "Simulation from a scene holding this velocity (scene.with_value) or lower scene.cfl."
+                )
 
     def cast(self, params):
         """Parameters as arrays of the scene's dtype (so values of any kind never retrace)."""

@@ -391,6 +391,17 @@ def test_friction_changes_do_not_recompile(count_step_traces):
     assert len(traces) == 1
 
 
+def test_a_prescribed_velocity_beyond_the_time_step_is_refused():
+    # The scene's time step keeps every body within a cell per step; a faster prescribed
+    # velocity passed later as a parameter is one clear error, not a broken run.
+    sim = Simulation(small_active_wall(duration=0.01))
+    fast = np.asarray(sim.params["bodies"]["wall"]["velocity"]) * 0.0
+    fast[2:, 0] = -2.0 * sim.scene.grid.cell / sim.dt
+    with pytest.raises(SceneError, match=r"params\['bodies'\]\['wall'\]\['velocity'\] reaches"):
+        sim.probes(with_values(sim.params, {"bodies.wall.velocity": fast}))
+    sim.check_time_step(sim.cast(sim.params))            # the scene's own values pass
+
+
 def test_calibration_names_reach_contact_friction():
     from inverse.parameters import ParameterSpace
 
