@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import jaxmpm
+from tests.test_elastic_validation import cell_means
 from jaxmpm import (
     Body, Boundaries, Grid, Kinematics, LinearElastic, Numerics, Probe, Rectangle, Scene, SceneError,
 )
@@ -48,15 +49,6 @@ def test_ring_masses_integrate_the_solid_of_revolution(inner):
     )
     mass = np.asarray(jaxmpm.Simulation(scene).initial_state().particles.mass)
     assert 2 * math.pi * mass.sum() == pytest.approx(RHO * math.pi * (outer**2 - inner**2) * height, rel=1e-12)
-
-
-def cell_means(positions, cell, values):
-    """Mean of `values` over the points of each grid cell (by initial position)."""
-    index = np.floor(positions / cell + 1e-9).astype(np.int64)
-    _, inverse = np.unique(index, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    count = np.bincount(inverse)
-    return np.stack([np.bincount(inverse, column) / count for column in np.atleast_2d(values.T)], axis=1)
 
 
 # Each check measures its errors in a function (used by the test and by
