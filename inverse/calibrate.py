@@ -1,15 +1,25 @@
-"""Calibration: fit material parameters to observed probe histories.
+"""Calibration: fit parameters to observed histories of one or several experiments.
 
     fit = inverse.calibrate(sim, observations, fit={"sand.friction_angle": (20, 45)})
+    fit = inverse.calibrate([inverse.Experiment(sim, slow), inverse.Experiment(sim, fast, set=...)],
+                            fit={"sand.fluidity": (0.1, 100), "sand.exponent": (1, 5)})
 
-Residuals r_j = (y_sim(t_j) - y_obs_j) / sigma_j, the simulated probes linearly interpolated
-to the observation times; sigma is the stated noise, or the channel's RMS when none is given.
-The optimiser minimises the mean half-square L(z) = sum_j r_j^2 / (2 M) in unconstrained
-coordinates z (see `parameters`), for one or several starts at once (vmapped), with optax's
-Adam or L-BFGS (zoom line search). Each start stops when ||dL/dz||_inf < gtol, or when
-|L_prev - L| <= ftol max(|L|, tiny), or after max_iterations. Progress is saved to a
-checkpoint every `checkpoint_every` iterations and on Ctrl-C; `resume=True` continues from it
-and ends where an uninterrupted run would.
+Residuals r_j = (y_sim(t_j) - y_obs_j) / sigma_j of every experiment form one vector (see
+`inverse.experiments`), the simulated probes linearly interpolated to the observation times;
+sigma is the stated noise, or the channel's RMS when none is given. The loss is the mean
+half-square L(z) = sum_j r_j^2 / (2 M) in unconstrained coordinates z (see `parameters`).
+
+Optimisers, for one or several starts at once (vmapped):
+  "lm"     Levenberg–Marquardt on r with forward-mode Jacobians (the default: a few
+           parameters cost a few forward passes, no reverse-mode memory; docs/calibration.md
+           measures it against the others);
+  "lbfgs"  optax's L-BFGS (zoom line search) on L with reverse-mode gradients;
+  "adam"   optax's Adam.
+Each start stops when ||dL/dz||_inf < gtol, or when a step changes L by at most
+ftol max(|L|, tiny), or when Levenberg–Marquardt's damping grows past any use (no step
+lowers L), or after max_iterations. Progress is saved to a checkpoint every
+`checkpoint_every` iterations and on Ctrl-C; `resume=True` continues from it and ends where
+an uninterrupted run would.
 """
 
 from __future__ import annotations
@@ -18,7 +28,9 @@ import copy
 import dataclasses
 import functools
 import hashlib
+import resource
 import time as clock
+import warnings
 from pathlib import Path
 
 import jax
@@ -26,47 +38,30 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from inverse.fit import Fit, gauss_newton
-from inverse.observations import Observations, check_against, default_scale
+from inverse import levenberg_marquardt
+from inverse.experiments import (
+    check_observations, experiments_from, group_experiments, layout_of, problem_arguments, problem_residuals,
+)
+from inverse.fit import ExperimentFit, Fit, gauss_newton
 from inverse.parameters import ParameterSpace
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.files import atomic_path
 from jaxmpm.simulation import STEP_SLACK, describe_failure
 from jaxmpm.xla_options import jit_reverse_mode
 
-OPTIMIZERS = ("lbfgs", "adam")
+OPTIMIZERS = ("lm", "lbfgs", "adam")
+LM_DAMPING_LIMIT = 1e16     # LM damping beyond this x max diag(J^T J): no step lowers the loss
 
 
-def observation_data(sim, observations: Observations):
-    """The observed values as jit arguments: one (times, values, scale) triple per channel."""
-    return tuple(
-        (
-            jnp.asarray(channel.times, sim.dtype),
-            jnp.asarray(channel.values, sim.dtype),
-            jnp.asarray(channel.sigma if channel.sigma is not None else default_scale(channel), sim.dtype),
-        )
-        for channel in observations.channels.values()
-    )
-
-
-def check_observations(sim, observations: Observations):
-    """SceneError unless every channel names a probe component of the scene inside its time."""
-    probe_widths = {name: value.shape[0] for name, value in sim.observe_start(sim.initial_state()).items()}
-    check_against(observations, probe_widths, (float(sim.time[0]), float(sim.time[-1])))
-    for name, channel in observations.channels.items():
-        for component in channel.components:
-            if not 0 <= component < probe_widths[name]:
-                raise SceneError(f"observations.{name} names component {component}; the probe has {probe_widths[name]}.")
-
-
-def check_stable_over_bounds(sim, space: ParameterSpace):
+def check_stable_over_bounds(experiment, space: ParameterSpace, index: int):
     """SceneError if the bounds let a fitted modulus, Poisson's ratio or density reach values for
     which the scene's fixed time step would be unstable (c_p grows with E and nu, falls with rho)."""
     extremes = {"young": "high", "poisson": "high", "density": "low"}
+    sim = experiment.sim
     materials = sim.params["materials"]
     for material_name in materials:
         values = dict(materials[material_name])
-        for entry, (namespace, owner, key) in zip(space.entries, space.locations):
+        for entry, (namespace, owner, key) in space.fitted_in(index):
             if namespace != "materials" or owner != material_name or key not in extremes:
                 continue
             bound = getattr(entry, extremes[key])
@@ -83,57 +78,90 @@ def check_stable_over_bounds(sim, space: ParameterSpace):
             )
 
 
-def residual_function(sim, observations: Observations, space: ParameterSpace):
-    """residuals(values, data, base) -> (M,) weighted residuals for physical parameter values
-    (P,), with `data` from `observation_data` and `base` the parameter pytree the fitted values
-    are inserted into (both arguments, so new data or fixed values never recompile)."""
-    time = jnp.asarray(sim.time, sim.dtype)
-    layout = [(name, channel.components) for name, channel in observations.channels.items()]
-
-    def residuals(values, data, base):
-        probes = sim.probes(space.insert(values, base))
-        parts = []
-        for (name, components), (times, observed, scale) in zip(layout, data):
-            simulated = jnp.stack([jnp.interp(times, time, probes[name][:, k]) for k in components], axis=1)
-            parts.append(((simulated - observed) / scale).ravel())
-        return jnp.concatenate(parts)
-
-    return residuals
-
-
 @dataclasses.dataclass(frozen=True)
 class CompiledProblem:
-    """The jitted pieces of a calibration, reused by every calibration of the same simulation,
-    fitted parameters, optimiser and observation layout (data values may change freely)."""
+    """The jitted pieces of a calibration, reused by every calibration of the same
+    simulations, fitted parameters, optimiser and observation layouts (data values and the
+    experiments' fixed values may change freely).
 
-    residuals: object      # residuals(values, data, base)
-    start: object          # start(z (S, P), state, data, base) -> (z, state, loss (S,), |grad|inf (S,))
-    iterate: object        # the same, reusing the loss and gradient the L-BFGS line search stored
-    losses: object         # losses(z (S, P), data, base) -> (S,)
-    init: object           # init(z (S, P)) -> optimiser state
+    start(z (S, P), data, bases) -> state;  first and iterate(z, state, data, bases) ->
+    (z, state, loss at the incoming z (S,), ||dL/dz||_inf there (S,)): `first` for the first
+    iteration, `iterate` (None: the same as `first`) for the others."""
+
+    residuals: object      # residuals(values (P,), data, bases) -> (M,)
+    start: object
+    first: object
+    iterate: object
+    losses: object         # losses(z (S, P), data, bases) -> (S,)
 
 
-def compiled_problem(sim, observations, space, optimizer_name, learning_rate) -> CompiledProblem:
-    layout = tuple((name, c.components, len(c.times)) for name, c in observations.channels.items())
-    # The problem is cached on the simulation it belongs to (it compiles that simulation).
+def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) -> CompiledProblem:
+    layout = tuple((id(e.sim), layout_of(e.observations)) for e in experiments)
+    # The problem is cached on the first simulation (it compiles that simulation).
     key = (space.fingerprint(), optimizer_name, learning_rate, layout)
-    cache = sim.compiled_cache.setdefault("calibration", {})
+    cache = experiments[0].sim.compiled_cache.setdefault("calibration", {})
     if key in cache:
         return cache[key]
-    transform = make_optimizer(optimizer_name, learning_rate)
-    residuals = residual_function(sim, observations, space)
-    count = observations.count
+    residuals = problem_residuals(groups)
+    count = sum(e.observations.count for e in experiments)
 
-    def loss_of_z(z, data, base):
-        r = residuals(space.to_physical(z), data, base)
+    def residuals_of_z(z, data, bases):
+        return residuals(space.to_physical(z), data, bases)
+
+    def loss_of_z(z, data, bases):
+        r = residuals_of_z(z, data, bases)
         return 0.5 * jnp.sum(r * r) / count
 
-    def one_iteration(z, state, data, base, stored):
+    batched = functools.partial(jax.vmap, in_axes=(0, 0, None, None))
+    if optimizer_name == "lm":
+        start, iterate = levenberg_marquardt_iteration(residuals_of_z, count)
+        first = iterate
+        compile_iteration = jax.jit          # forward mode: no reverse-mode XLA options needed
+    else:
+        start, first, iterate = optax_iteration(loss_of_z, optimizer_name, learning_rate)
+        compile_iteration = jit_reverse_mode
+    problem = CompiledProblem(
+        residuals=residuals,
+        start=jax.jit(jax.vmap(start, in_axes=(0, None, None))),
+        first=compile_iteration(batched(first)),
+        iterate=compile_iteration(batched(iterate)) if iterate is not first else None,
+        losses=jax.jit(jax.vmap(loss_of_z, in_axes=(0, None, None))),
+    )
+    cache[key] = problem
+    return problem
+
+
+def levenberg_marquardt_iteration(residuals_of_z, count):
+    """(start, iterate) of Levenberg–Marquardt with forward-mode Jacobians (see
+    `inverse.levenberg_marquardt`); losses and gradients reported as L = r.r / (2 M)."""
+
+    def start(z, data, bases):
+        return levenberg_marquardt.init(functools.partial(residuals_of_z, data=data, bases=bases), z)
+
+    def iterate(z, state, data, bases):
+        del z                       # the state holds z with its residuals and Jacobian
+        value = 0.5 * jnp.sum(state.residuals**2) / count
+        gradient = state.jacobian.T @ state.residuals / count
+        new_state = levenberg_marquardt.step(functools.partial(residuals_of_z, data=data, bases=bases), state)
+        return new_state.z, new_state, value, jnp.max(jnp.abs(gradient))
+
+    return start, iterate
+
+
+def optax_iteration(loss_of_z, optimizer_name, learning_rate):
+    """(start, first, iterate) of an optax optimiser on the loss (reverse-mode gradients)."""
+    transform = make_optimizer(optimizer_name, learning_rate)
+
+    def start(z, data, bases):
+        del data, bases
+        return transform.init(z)
+
+    def iterate(z, state, data, bases, stored):
         """One optimiser step from z. With `stored` (L-BFGS after its first step) the loss and
         gradient at z are the ones its line search kept: reading them, rather than using
         optax.value_and_grad_from_state, avoids a lax.cond that vmap would turn into an
         always-evaluated second simulation."""
-        loss = functools.partial(loss_of_z, data=data, base=base)
+        loss = functools.partial(loss_of_z, data=data, bases=bases)
         if stored:
             value = optax.tree_utils.tree_get(state, "value")
             gradient = optax.tree_utils.tree_get(state, "grad")
@@ -145,16 +173,8 @@ def compiled_problem(sim, observations, space, optimizer_name, learning_rate) ->
             updates, state = transform.update(gradient, state, z)
         return optax.apply_updates(z, updates), state, value, jnp.max(jnp.abs(gradient))
 
-    batched = functools.partial(jax.vmap, in_axes=(0, 0, None, None))
-    problem = CompiledProblem(
-        residuals=residuals,
-        start=jit_reverse_mode(batched(functools.partial(one_iteration, stored=False))),
-        iterate=jit_reverse_mode(batched(functools.partial(one_iteration, stored=optimizer_name == "lbfgs"))),
-        losses=jax.jit(jax.vmap(loss_of_z, in_axes=(0, None, None))),
-        init=jax.jit(jax.vmap(transform.init)),
-    )
-    cache[key] = problem
-    return problem
+    first = functools.partial(iterate, stored=False)
+    return start, first, functools.partial(iterate, stored=optimizer_name == "lbfgs")
 
 
 def make_optimizer(name, learning_rate):
@@ -178,9 +198,16 @@ class Progress:
     history_loss: list         # per iteration: (S,)
     history_values: list       # per iteration: (S, P) physical values
     history_gradient: list     # per iteration: (S,) ||dL/dz||_inf
-    evaluations: int           # loss-and-gradient evaluations (forward + reverse simulations)
+    history_seconds: list      # per iteration: wall time [s] (the first includes compiling)
+    history_memory: list       # per iteration: the process's peak resident memory so far [MB]
+    history_simulations: list  # per iteration: simulations so far (see `Fit.evaluations`)
+    evaluations: int           # simulations so far
     best_z: np.ndarray         # (S, P) the finite point of lowest loss seen by each start
     best_loss: np.ndarray      # (S,) its loss (inf if none was finite)
+
+
+HISTORIES = ("history_loss", "history_values", "history_gradient", "history_seconds", "history_memory",
+             "history_simulations")
 
 
 def save_checkpoint(path, progress: Progress, fingerprint):
@@ -194,13 +221,11 @@ def save_checkpoint(path, progress: Progress, fingerprint):
             loss=progress.loss,
             done=progress.done,
             reason=np.array(progress.reason),
-            history_loss=np.array(progress.history_loss),
-            history_values=np.array(progress.history_values),
-            history_gradient=np.array(progress.history_gradient),
             evaluations=progress.evaluations,
             best_z=progress.best_z,
             best_loss=progress.best_loss,
             leaf_count=len(progress.opt_leaves),
+            **{name: np.array(getattr(progress, name)) for name in HISTORIES},
             **arrays,
         )
 
@@ -217,20 +242,24 @@ def load_checkpoint(path, fingerprint) -> Progress:
             done=data["done"],
             reason=[str(r) for r in data["reason"]],
             opt_leaves=[data[f"opt_{i}"] for i in range(count)],
-            history_loss=list(data["history_loss"]),
-            history_values=list(data["history_values"]),
-            history_gradient=list(data["history_gradient"]),
             evaluations=int(data["evaluations"]),
             best_z=np.array(data["best_z"]),
             best_loss=np.array(data["best_loss"]),
+            **{name: list(data[name]) for name in HISTORIES},
         )
+
+
+def peak_memory_mb() -> float:
+    """The process's peak resident memory so far [MB] (Linux reports KiB, macOS bytes)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 1024.0**2 if peak > 1 << 32 else peak / 1024.0
 
 
 def calibrate(
     sim,
-    observations: Observations,
-    fit: dict,
-    optimizer: str = "lbfgs",
+    observations=None,
+    fit: dict | None = None,
+    optimizer: str = "lm",
     starts=1,
     max_iterations: int = 50,
     gtol: float = 1e-8,
@@ -244,58 +273,83 @@ def calibrate(
     callback=None,
 ) -> Fit:
     """Fit `fit` = {"material.parameter": (low, high) | {"low", "high", "start"}} to the
-    observations, from `starts` start points (an int: the configured start plus random draws
-    inside the bounds; or a list of {path: value} dicts). Returns a `Fit`.
+    observations of one experiment (`sim`, `observations`) or of several (`sim` a list of
+    `inverse.Experiment` or (sim, observations[, set]) tuples, `observations` None), from
+    `starts` start points (an int: the configured start plus random draws inside the bounds;
+    or a list of {path: value} dicts). Returns a `Fit`.
 
-    callback(iteration, progress) is called after every iteration (e.g. to log or to stop).
+    Observations may be an `Observations`, a dict {probe: (times, values[, components])}, a
+    jaxmpm Result, or the path of a CSV or HDF5 file. optimizer: "lm" (default), "lbfgs" or
+    "adam" (see the module docstring). callback(iteration, progress) is called after every
+    iteration (e.g. to log or to stop).
     """
+    if fit is None:
+        raise SceneError("fit is missing: name the parameters to fit, e.g. fit={'sand.friction_angle': (20, 45)}.")
     # optax's L-BFGS mixes int32 and int64 internally, which strict promotion would refuse.
     with jax.numpy_dtype_promotion("standard"):
-        return _calibrate(sim, observations, fit, optimizer, starts, max_iterations, gtol, ftol,
+        return _calibrate(experiments_from(sim, observations), fit, optimizer, starts, max_iterations, gtol, ftol,
                           learning_rate, seed, checkpoint, checkpoint_every, resume, progress, callback)
 
 
-def _calibrate(sim, observations, fit, optimizer, starts, max_iterations, gtol, ftol, learning_rate,
-               seed, checkpoint, checkpoint_every, resume, progress, callback):
-    from tqdm.auto import tqdm
-
-    space = ParameterSpace(sim.params, fit)
+def _check_options(optimizer, max_iterations, checkpoint_every, gtol, ftol):
+    if optimizer not in OPTIMIZERS:
+        raise SceneError(f"optimizer = {optimizer!r} is not one of {', '.join(map(repr, OPTIMIZERS))}.")
     for key, value, low in (("max_iterations", max_iterations, 1), ("checkpoint_every", checkpoint_every, 1)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise SceneError(f"{key} = {value!r} must be a positive integer.")
     for key, value in (("gtol", gtol), ("ftol", ftol)):
         if not (isinstance(value, (int, float)) and value >= 0):
             raise SceneError(f"{key} = {value!r} must be a number >= 0.")
-    check_observations(sim, observations)
-    check_stable_over_bounds(sim, space)
-    optimizer_name = optimizer
-    problem = compiled_problem(sim, observations, space, optimizer_name, learning_rate)
-    data = observation_data(sim, observations)
-    base = sim.cast(sim.params)
-    start_values = _start_values(space, starts, seed)
-    z0 = jnp.stack([space.to_unconstrained(jnp.asarray(v, sim.dtype)) for v in start_values])
-    state = problem.init(z0)
-    treedef = jax.tree_util.tree_structure(state)
-    fingerprint = _fingerprint(sim, space, optimizer_name, learning_rate, start_values, data)
-    count = len(start_values)
 
+
+def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, learning_rate,
+               seed, checkpoint, checkpoint_every, resume, progress, callback):
+    from tqdm.auto import tqdm
+
+    _check_options(optimizer, max_iterations, checkpoint_every, gtol, ftol)
+    dtypes = {e.sim.dtype for e in experiments}
+    if len(dtypes) > 1:
+        raise SceneError("experiments: every scene must have the same numerics.dtype "
+                         f"(they have {', '.join(sorted(map(str, dtypes)))}).")
+    dtype = dtypes.pop()
+    space = ParameterSpace([e.sim.params for e in experiments], fit)
+    for index, experiment in enumerate(experiments):
+        check_observations(experiment)
+        check_stable_over_bounds(experiment, space, index)
+    groups = group_experiments(experiments, space)
+    data, bases = problem_arguments(experiments, groups)
+    problem = compiled_problem(experiments, groups, space, optimizer, learning_rate)
+    start_values = _start_values(space, starts, seed)
+    count = len(start_values)
+    warning = "; ".join(filter(None, (linear_shape_warning(e, space, start_values[0], i)
+                                      for i, e in enumerate(experiments))))
+    if warning:
+        warnings.warn(warning, stacklevel=3)
+    z0 = jnp.stack([space.to_unconstrained(jnp.asarray(v, dtype)) for v in start_values])
+    fingerprint = _fingerprint(experiments, space, optimizer, learning_rate, start_values, data)
+    started = clock.monotonic()
+    state_shape = jax.eval_shape(problem.start, z0, data, bases)
+    treedef = jax.tree_util.tree_structure(state_shape)
     if resume and checkpoint is not None and Path(checkpoint).exists():
         run = load_checkpoint(checkpoint, fingerprint)
         state = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(leaf) for leaf in run.opt_leaves])
     else:
+        state = problem.start(z0, data, bases)
         run = Progress(0, np.asarray(z0), np.full(count, np.inf), np.zeros(count, bool), [""] * count,
-                       [], [], [], [], 0, np.array(z0), np.full(count, np.inf))
-    z = jnp.asarray(run.z, sim.dtype)
-    started = clock.monotonic()
+                       [], [], [], [], [], [], [], count if optimizer == "lm" else 0, np.array(z0),
+                       np.full(count, np.inf))
+    z = jnp.asarray(run.z, dtype)
     saved = copy.deepcopy(run)          # the last complete iteration: what an interrupt keeps
     bar = tqdm(total=max_iterations, initial=run.iteration, unit="it", disable=not progress, desc="calibrate")
     try:
         while run.iteration < max_iterations and not run.done.all():
-            step = problem.iterate if run.iteration > 0 else problem.start
-            new_z, new_state, value, gradient_norm = step(z, state, data, base)
+            tick = clock.monotonic()
+            step = problem.first if run.iteration == 0 or problem.iterate is None else problem.iterate
+            moved = np.asarray(state.accepted) if optimizer == "lm" else np.ones(count, bool)
+            new_z, new_state, value, gradient_norm = step(z, state, data, bases)
             value, gradient_norm = np.asarray(value), np.asarray(gradient_norm)
             running = ~run.done
-            run.evaluations += int(np.sum(running)) * (1 + _linesearch_steps(new_state, optimizer_name))
+            run.evaluations += int(np.sum(running)) * (1 + _linesearch_steps(new_state, optimizer))
             # the value and gradient were taken at z: record them, then decide whether to stop there
             run.history_loss.append(value)
             run.history_values.append(np.asarray(jax.vmap(space.to_physical)(z)))
@@ -306,8 +360,10 @@ def _calibrate(sim, observations, fit, optimizer, starts, max_iterations, gtol, 
                     run.reason[s] = "loss or gradient became non-finite (kept the best finite point)"
                 elif gradient_norm[s] < gtol:
                     run.reason[s] = f"gradient norm {gradient_norm[s]:.3g} < gtol"
-                elif np.isfinite(run.loss[s]) and change <= ftol * max(abs(value[s]), 1e-300):
+                elif moved[s] and np.isfinite(run.loss[s]) and change <= ftol * max(abs(value[s]), 1e-300):
                     run.reason[s] = f"relative loss change {change / max(abs(value[s]), 1e-300):.3g} <= ftol"
+                elif optimizer == "lm" and _damping_exhausted(new_state, s):
+                    run.reason[s] = "no step lowers the loss any more (Levenberg-Marquardt damping exhausted)"
                 if np.isfinite(value[s]) and value[s] < run.best_loss[s]:
                     run.best_loss[s], run.best_z[s] = value[s], np.asarray(z[s])
             run.loss = np.where(running, value, run.loss)
@@ -320,9 +376,13 @@ def _calibrate(sim, observations, fit, optimizer, starts, max_iterations, gtol, 
             run.z = np.asarray(z)
             run.iteration += 1
             run.opt_leaves = [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(state)]
+            run.history_seconds.append(clock.monotonic() - tick)
+            run.history_memory.append(peak_memory_mb())
+            run.history_simulations.append(run.evaluations)
             saved = copy.deepcopy(run)
             bar.update(1)
-            bar.set_postfix(loss=f"{np.min(run.best_loss):.4g}")
+            bar.set_postfix(loss=f"{np.min(run.best_loss):.4g}", sims=run.evaluations,
+                            s_per_it=f"{run.history_seconds[-1]:.1f}", mem=f"{run.history_memory[-1]:.0f}MB")
             if checkpoint is not None and run.iteration % checkpoint_every == 0:
                 save_checkpoint(checkpoint, run, fingerprint)
             if callback is not None:
@@ -338,21 +398,38 @@ def _calibrate(sim, observations, fit, optimizer, starts, max_iterations, gtol, 
     for s in range(count):
         if not run.reason[s]:
             run.reason[s] = f"max_iterations = {max_iterations} reached"
+    return _finish(experiments, groups, space, problem, data, bases, run, start_values, optimizer, started, warning)
 
-    # Each start's answer is its best finite point (the final one unless it went astray).
-    final_z = jnp.asarray(run.best_z, sim.dtype)
-    final_losses = np.asarray(problem.losses(final_z, data, base))
+
+def _finish(experiments, groups, space, problem, data, bases, run, start_values, optimizer, started, warning):
+    """The Fit: each start's answer is its best finite point (the final one unless it went
+    astray); the best start's covariance and every experiment's best-fit probes."""
+    dtype = experiments[0].sim.dtype
+    final_z = jnp.asarray(run.best_z, dtype)
+    final_losses = np.asarray(problem.losses(final_z, data, bases))
     if not np.any(np.isfinite(final_losses)):
         raise SimulationError("every start of the calibration went non-finite; narrow the bounds or change the starts.")
     best = int(np.nanargmin(np.where(np.isfinite(final_losses), final_losses, np.nan)))
     values = np.asarray(space.to_physical(final_z[best]))
     covariance, jacobian = gauss_newton(
-        functools.partial(problem.residuals, data=data, base=base), values, noise_known=observations.noise_known
+        functools.partial(problem.residuals, data=data, bases=bases), values,
+        noise_known=all(e.observations.noise_known for e in experiments),
     )
-    probes, final_state = sim._probes(space.insert(jnp.asarray(values, sim.dtype), base), sim.initial_state(base))
-    warning = ""
-    if int(final_state.error_step) >= 0:
-        warning = "best-fit run: " + describe_failure(sim, final_state)
+    runs, warnings_found = [], [warning] if warning else []
+    for index, experiment in enumerate(experiments):
+        base = bases[next(g for g, group in enumerate(groups) if index in group.members)]
+        group = next(group for group in groups if index in group.members)
+        if len(group.members) > 1:
+            base = jax.tree_util.tree_map(lambda leaf: leaf[group.members.index(index)], base)
+        sim = experiment.sim
+        params = space.insert(jnp.asarray(values, dtype), base, experiment=index)
+        probes, final_state = sim._probes(params, sim.initial_state(params))
+        if int(final_state.error_step) >= 0:
+            warnings_found.append(f"best-fit run of {experiment.name}: " + describe_failure(sim, final_state))
+        runs.append(ExperimentFit(experiment.name, experiment.observations, np.asarray(sim.time),
+                                  {name: np.asarray(v) for name, v in probes.items()}, dict(experiment.set)))
+    # + one loss of every start, the Jacobian (P forward-mode passes ~ P simulations), the probes
+    evaluations = run.evaluations + len(start_values) + space.size + len(experiments)
     return Fit(
         names=space.names,
         values=values,
@@ -367,37 +444,76 @@ def _calibrate(sim, observations, fit, optimizer, starts, max_iterations, gtol, 
         history_loss=np.array(run.history_loss),
         history_values=np.array(run.history_values),
         history_gradient=np.array(run.history_gradient),
+        history_seconds=np.array(run.history_seconds),
+        history_memory=np.array(run.history_memory),
+        history_simulations=np.array(run.history_simulations),
         iterations=run.iteration,
-        # + one loss of every start, the Jacobian (P forward-mode passes ~ P simulations), the probes
-        evaluations=run.evaluations + count + space.size + 1,
+        evaluations=evaluations,
         wall_time=clock.monotonic() - started,
-        optimizer=optimizer_name,
-        observations=observations,
-        time=np.asarray(sim.time),
-        probes={name: np.asarray(v) for name, v in probes.items()},
-        scene_toml=sim.scene.to_toml(),
-        warning=warning,
+        optimizer=optimizer,
+        experiments=runs,
+        scene_toml=experiments[0].sim.scene.to_toml(),
+        warning="; ".join(warnings_found),
     )
 
 
-def _fingerprint(sim, space, optimizer_name, learning_rate, start_values, data):
+def cells_crossed(sim, final_state, initial_state) -> int:
+    """How many points end in another grid cell than they started in."""
+    origin, cell = np.asarray(sim.scene.grid.origin), sim.scene.grid.cell
+    start = np.floor((np.asarray(initial_state.particles.x) - origin) / cell)
+    end = np.floor((np.asarray(final_state.particles.x) - origin) / cell)
+    return int(np.sum(np.any(start != end, axis=1)))
+
+
+def linear_shape_warning(experiment, space, start_values, index) -> str:
+    """A warning if the experiment uses linear shape functions and points cross cells at the
+    start values: its misfit is then rough in the parameters (docs/calibration.md: the
+    gradient and the secant slope differ by tens of per cent on the heap twin)."""
+    sim = experiment.sim
+    if sim.scene.numerics.shape != "linear":
+        return ""
+    from inverse.experiments import base_parameters
+
+    params = space.insert(jnp.asarray(start_values, sim.dtype), base_parameters(experiment), experiment=index)
+    initial = sim.initial_state(params)
+    _, final = sim._probes(params, initial)
+    crossed = cells_crossed(sim, final, initial)
+    if crossed == 0:
+        return ""
+    return (f"{experiment.name}: {crossed} of {sim.point_count} points cross a cell with linear shape "
+            "functions, which makes the misfit rough in the parameters (gradients then mislead the "
+            "optimiser); set numerics.shape = 'bspline2' (or 'gimp') for calibration")
+
+
+def _damping_exhausted(state, start) -> bool:
+    """Levenberg–Marquardt's damping has grown past any use: no step lowers the loss."""
+    scale = np.max(np.sum(np.asarray(state.jacobian[start]) ** 2, axis=0))
+    return float(state.damping[start]) > LM_DAMPING_LIMIT * max(scale, 1e-300)
+
+
+def _fingerprint(experiments, space, optimizer_name, learning_rate, start_values, data):
     """What must match for a checkpoint to be resumed: problem, optimiser, starts and data."""
     digest = hashlib.sha256()
-    digest.update(sim.scene.to_toml().encode())
-    for times, values, scale in data:
-        for array in (times, values, scale):
-            digest.update(np.asarray(array).tobytes())
+    for experiment in experiments:
+        digest.update(experiment.sim.scene.to_toml().encode())
+        digest.update(repr(sorted((k, np.asarray(v).tolist()) for k, v in experiment.set.items())).encode())
+    for leaf in jax.tree_util.tree_leaves(data):
+        digest.update(np.asarray(leaf).tobytes())
     digest.update(np.asarray(start_values).tobytes())
     return f"{space.fingerprint()} {optimizer_name} {learning_rate} {digest.hexdigest()}"
 
 
 def _start_values(space: ParameterSpace, starts, seed):
+    if isinstance(starts, bool) or not isinstance(starts, (int, list, tuple)):
+        raise SceneError(f"starts = {starts!r} must be a number of starts or a list of {{name: value}} dicts.")
     if isinstance(starts, int):
         if starts < 1:
             raise SceneError(f"starts = {starts!r} must be at least 1.")
         return space.random_values(starts, seed)
     rows = []
     for index, start in enumerate(starts):
+        if not isinstance(start, dict):
+            raise SceneError(f"starts[{index}] = {start!r} must be a {{name: value}} dict.")
         unknown = set(start) - set(space.names)
         if unknown:
             raise SceneError(f"starts[{index}] names {sorted(unknown)[0]!r}, which is not fitted.")
@@ -412,7 +528,7 @@ def _start_values(space: ParameterSpace, starts, seed):
 
 
 def _linesearch_steps(state, optimizer_name):
-    """Extra loss evaluations the L-BFGS line search made in this iteration (0 for Adam)."""
+    """Extra loss evaluations the L-BFGS line search made in this iteration (0 otherwise)."""
     if optimizer_name != "lbfgs":
         return 0
     steps = optax.tree_utils.tree_get(state, "num_linesearch_steps")

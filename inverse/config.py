@@ -1,17 +1,36 @@
 """Calibration configuration files, for `jaxmpm calibrate CONFIG.toml -o FIT.h5`.
 
+One experiment:
+
     scene = "twin_scene.toml"                  # paths are relative to this file
     observations = "twin_observations.csv"     # .csv or .h5 (e.g. a jaxmpm output file)
+
+    [noise]                                    # optional: noise std of each probe, its units
+    footing = 1.0e-5
+
+Several experiments sharing the fitted parameters (instead of scene/observations/noise):
+
+    [[experiments]]
+    name = "slow"
+    scene = "footing.toml"
+    observations = "slow.csv"
+    set = { "bodies.footing.velocity" = [0.0, -0.02] }   # optional: this experiment's own values
+    noise = { footing = 1.0e-5 }                         # optional
+
+    [[experiments]]
+    name = "fast"
+    scene = "footing.toml"                     # the same scene file: one Simulation, vmapped
+    observations = "fast.csv"
+    set = { "bodies.footing.velocity" = [0.0, -0.08] }
+
+Then, for both forms:
 
     [fit]                                      # parameters to fit, with bounds
     "sand.friction_angle" = [15.0, 40.0]
     "sand.fluidity" = { low = 0.1, high = 100.0, start = 3.0 }
 
-    [noise]                                    # optional: noise std of each probe, its units
-    footing = 1.0e-5
-
     [optimizer]                                # all optional
-    name = "lbfgs"                             # or "adam" (then learning_rate, default 0.05)
+    name = "lm"                                # or "lbfgs", "adam" (then learning_rate, default 0.05)
     max_iterations = 50
     starts = 1
     gtol = 1e-8
@@ -30,17 +49,56 @@ from jaxmpm.errors import SceneError
 from jaxmpm.scene import _Table, load_scene
 from inverse.observations import load_observations
 
-OPTIONS = {"name": ("str", "lbfgs"), "max_iterations": ("int", 50), "starts": ("int", 1),
+OPTIONS = {"name": ("str", "lm"), "max_iterations": ("int", 50), "starts": ("int", 1),
            "learning_rate": ("float", None), "gtol": ("float", 1e-8), "ftol": ("float", 1e-10),
            "seed": ("int", 0), "checkpoint_every": ("int", 5)}
 
 
 @dataclasses.dataclass
-class CalibrationConfig:
+class ExperimentConfig:
+    name: str | None
     scene: object
+    scene_path: Path
     observations: object
+    set: dict
+
+
+@dataclasses.dataclass
+class CalibrationConfig:
+    experiments: list
     fit: dict
     options: dict
+
+    def simulations(self):
+        """inverse.Experiments with one jaxmpm.Simulation per scene file (experiments of the
+        same file share it, so they run together under vmap)."""
+        import jaxmpm
+        from inverse.experiments import Experiment
+
+        sims = {}
+        experiments = []
+        for experiment in self.experiments:
+            key = experiment.scene_path.resolve()
+            if key not in sims:
+                sims[key] = jaxmpm.Simulation(experiment.scene)
+            experiments.append(Experiment(sims[key], experiment.observations, experiment.set, experiment.name))
+        return experiments
+
+
+def _noise(table: _Table) -> dict:
+    table.known = list(table.data)
+    return {name: table.get(name, "float") for name in table.data}
+
+
+def _experiment(table: _Table, folder: Path, name=None) -> ExperimentConfig:
+    scene_path = folder / table.get("scene", "str")
+    scene = load_scene(scene_path)
+    noise = _noise(table.table("noise", {}))
+    observations = load_observations(folder / table.get("observations", "str"), sigma=noise)
+    fixed = table.get("set", "any", {})
+    if not isinstance(fixed, dict):
+        raise SceneError(f"{table.key('set')} = {fixed!r} must be a table of dotted names and values.")
+    return ExperimentConfig(name, scene, scene_path, observations, fixed)
 
 
 def load_calibration(path) -> CalibrationConfig:
@@ -51,13 +109,25 @@ def load_calibration(path) -> CalibrationConfig:
         raise SceneError(f"cannot read calibration file {str(path)!r}: {error.strerror}.") from None
     except tomllib.TOMLDecodeError as error:
         raise SceneError(f"{path} is not valid TOML: {error}.") from None
+    except UnicodeDecodeError:
+        raise SceneError(f"{path} is not UTF-8 text.") from None
     root = _Table(data, "")
-    root.known = ["scene", "observations", "fit", "noise", "optimizer"]
-    scene = load_scene(path.parent / root.get("scene", "str"))
-    noise_table = root.table("noise", {})
-    noise_table.known = list(noise_table.data)
-    noise = {name: noise_table.get(name, "float") for name in noise_table.data}
-    observations = load_observations(path.parent / root.get("observations", "str"), sigma=noise)
+    root.known = ["scene", "observations", "fit", "noise", "optimizer", "experiments"]
+    if "experiments" in data:
+        for key in ("scene", "observations", "noise"):
+            if key in data:
+                raise SceneError(f"{key} is given beside [[experiments]]: put it inside each experiment.")
+        entries = root.get("experiments", "any")
+        if not isinstance(entries, list) or not entries:
+            raise SceneError("experiments must be a non-empty array of tables ([[experiments]]).")
+        experiments = []
+        for index, entry in enumerate(entries):
+            table = _Table(entry, f"experiments[{index}]")
+            table.known = ["name", "scene", "observations", "set", "noise"]
+            experiments.append(_experiment(table, path.parent, table.get("name", "str", None)))
+            table.finish()
+    else:
+        experiments = [_experiment(root, path.parent)]
     fit = root.get("fit", "any")
     if not isinstance(fit, dict) or not fit:
         raise SceneError("fit must be a table naming at least one parameter, e.g. \"sand.friction_angle\" = [20, 45].")
@@ -66,4 +136,4 @@ def load_calibration(path) -> CalibrationConfig:
     options = {key: optimizer.get(key, kind, default) for key, (kind, default) in OPTIONS.items()}
     optimizer.finish()
     root.finish()
-    return CalibrationConfig(scene, observations, fit, options)
+    return CalibrationConfig(experiments, fit, options)

@@ -46,8 +46,24 @@ def gauss_newton(residuals, values, noise_known):
 
 
 @dataclasses.dataclass
+class ExperimentFit:
+    """One experiment of a calibration: its measurements and the best fit's probe histories."""
+
+    name: str
+    observations: object
+    time: np.ndarray            # (T,) [s]
+    probes: dict                # {probe: (T, k)} at the fitted values
+    fixed: dict                 # the experiment's own fixed values ({dotted name: value})
+
+
+@dataclasses.dataclass
 class Fit:
-    """A calibration's outcome. `params` {path: value} are the best start's values."""
+    """A calibration's outcome. `params` {path: value} are the best start's values.
+
+    Cost: `evaluations` counts simulations (for "lm" one forward pass carrying P tangents;
+    for "lbfgs" and "adam" one forward and one reverse pass), `history_seconds`,
+    `history_memory` (peak resident memory so far, MB) and `history_simulations` give them
+    per iteration (the first iteration's seconds include compiling)."""
 
     names: tuple
     values: np.ndarray
@@ -62,15 +78,31 @@ class Fit:
     history_loss: np.ndarray        # (iterations, starts)
     history_values: np.ndarray      # (iterations, starts, P)
     history_gradient: np.ndarray    # (iterations, starts)
+    history_seconds: np.ndarray     # (iterations,)
+    history_memory: np.ndarray      # (iterations,)
+    history_simulations: np.ndarray  # (iterations,)
     iterations: int
     evaluations: int
     wall_time: float
     optimizer: str
-    observations: object
-    time: np.ndarray
-    probes: dict
+    experiments: list               # [ExperimentFit]
     scene_toml: str
     warning: str = ""
+
+    @property
+    def observations(self):
+        """The first experiment's observations."""
+        return self.experiments[0].observations
+
+    @property
+    def time(self) -> np.ndarray:
+        """The first experiment's simulated times."""
+        return self.experiments[0].time
+
+    @property
+    def probes(self) -> dict:
+        """The first experiment's best-fit probe histories."""
+        return self.experiments[0].probes
 
     @property
     def params(self) -> dict:
@@ -88,8 +120,26 @@ class Fit:
 
     @property
     def history(self) -> dict:
-        """Loss (I, S), parameter values (I, S, P) and gradient norm (I, S) per iteration."""
-        return {"loss": self.history_loss, "values": self.history_values, "gradient_norm": self.history_gradient}
+        """Per iteration: loss (I, S), parameter values (I, S, P), gradient norm (I, S), wall
+        seconds (I,), peak memory [MB] (I,), simulations so far (I,)."""
+        return {"loss": self.history_loss, "values": self.history_values, "gradient_norm": self.history_gradient,
+                "seconds": self.history_seconds, "memory_mb": self.history_memory,
+                "simulations": self.history_simulations}
+
+    @property
+    def cost(self) -> dict:
+        """What the calibration cost: iterations, simulations, wall time [s] (and the part
+        spent in the first iteration, which includes compiling), seconds per later iteration,
+        peak memory [MB]."""
+        later = self.history_seconds[1:]
+        return {
+            "iterations": self.iterations,
+            "simulations": self.evaluations,
+            "wall_time": self.wall_time,
+            "first_iteration": float(self.history_seconds[0]) if len(self.history_seconds) else 0.0,
+            "seconds_per_iteration": float(np.mean(later)) if len(later) else float("nan"),
+            "peak_memory_mb": float(np.max(self.history_memory)) if len(self.history_memory) else float("nan"),
+        }
 
     def identifiability(self, relative=0.1, correlated=0.95) -> dict:
         """{path: verdict}: "identified" if its relative standard error is below `relative` and
@@ -110,8 +160,14 @@ class Fit:
         return verdicts
 
     def summary(self) -> str:
+        cost = self.cost
+        kind = "forward passes with tangents" if self.optimizer == "lm" else "forward + reverse passes"
         lines = [f"{self.optimizer}: loss {self.loss:.6g} after {self.iterations} iterations, "
-                 f"{self.evaluations} simulations (forward + gradient), {self.wall_time:.1f} s"]
+                 f"{self.evaluations} simulations ({kind}), {self.wall_time:.1f} s "
+                 f"({cost['first_iteration']:.1f} s first iteration with compiling, "
+                 f"{cost['seconds_per_iteration']:.2f} s per later one), peak memory {cost['peak_memory_mb']:.0f} MB"]
+        if len(self.experiments) > 1:
+            lines.append(f"  experiments: {', '.join(e.name for e in self.experiments)}")
         verdicts = self.identifiability()
         for name in self.names:
             lines.append(f"  {name} = {self.params[name]:.6g} +- {self.stderr[name]:.3g}   {verdicts[name]}")
@@ -121,18 +177,20 @@ class Fit:
         return "\n".join(lines)
 
     def plot(self, path=None):
-        """Data vs fit for every observed component, and the loss history. Returns the figure
-        (and writes it to `path` if given)."""
+        """Data vs fit for every observed component of every experiment, and the loss
+        history. Returns the figure (and writes it to `path` if given)."""
         import matplotlib.pyplot as plt
 
-        channels = [(name, k, index) for name, channel in self.observations.channels.items()
+        several = len(self.experiments) > 1
+        channels = [(run, name, k, index) for run in self.experiments
+                    for name, channel in run.observations.channels.items()
                     for index, k in enumerate(channel.components)]
         figure, axes = plt.subplots(1, len(channels) + 1, figsize=(4 * (len(channels) + 1), 3.2))
-        for axis, (name, component, index) in zip(axes, channels):
-            channel = self.observations.channels[name]
+        for axis, (run, name, component, index) in zip(axes, channels):
+            channel = run.observations.channels[name]
             axis.plot(channel.times, channel.values[:, index], ".", ms=3, color="0.4", label="observed")
-            axis.plot(self.time, self.probes[name][:, component], "-", color="C3", label="fit")
-            axis.set_title(f"{name}[{component}]")
+            axis.plot(run.time, run.probes[name][:, component], "-", color="C3", label="fit")
+            axis.set_title(f"{run.name}: {name}[{component}]" if several else f"{name}[{component}]")
             axis.set_xlabel("t [s]")
             axis.legend(fontsize=7)
         history = axes[-1]
@@ -145,9 +203,11 @@ class Fit:
         return figure
 
     def save(self, path) -> Path:
-        """HDF5, written atomically: attrs (optimizer, loss, iterations, evaluations, scene);
-        /params, /stderr (one dataset per parameter), /correlation, /covariance, /names,
-        /history/{loss, values, gradient_norm}, /starts/{initial, final, loss}, /probes/NAME."""
+        """HDF5, written atomically: attrs (optimizer, loss, iterations, evaluations, wall
+        time, scene of the first experiment); /params, /stderr (one dataset per parameter),
+        /correlation, /covariance, /names, /history/{loss, values, gradient_norm, seconds,
+        memory_mb, simulations}, /starts/{initial, final, loss}; /time and /probes/NAME of the
+        first experiment, and /experiments/NAME/{time, probes/PROBE} of each."""
         import h5py
 
         path = Path(path)
@@ -171,4 +231,8 @@ class Fit:
             file.create_dataset("time", data=self.time)
             for name, values in self.probes.items():
                 file.create_dataset(f"probes/{name}", data=values)
+            for run in self.experiments:
+                file.create_dataset(f"experiments/{run.name}/time", data=run.time)
+                for name, values in run.probes.items():
+                    file.create_dataset(f"experiments/{run.name}/probes/{name}", data=values)
         return path

@@ -73,26 +73,39 @@ def _bounds(path, spec):
 
 
 class ParameterSpace:
-    """The fitted subset of a simulation's parameters, with transforms to unconstrained z."""
+    """The fitted subset of one or several simulations' parameters, with transforms to
+    unconstrained z. `params` is one parameter pytree, or a list of them (one per experiment):
+    a fitted name then applies to every experiment whose parameters have it, and must exist
+    in at least one; its start value is taken from the first that has it."""
 
     def __init__(self, params, fit: dict):
         if not fit:
             raise SceneError("fit is empty: name at least one parameter, e.g. 'sand.friction_angle'.")
-        self.template = params
+        templates = list(params) if isinstance(params, (list, tuple)) else [params]
+        self.templates = templates
+        self.template = templates[0]
         self.entries = []
-        self.locations = []      # (namespace, owner, key) of each entry in the parameter pytree
+        self.placements = [[] for _ in templates]   # per experiment: (entry index, (namespace, owner, key))
         for path, spec in fit.items():
-            try:
-                location = resolve(params, path)
-            except SceneError as error:
-                raise SceneError(f"fit: {error}") from None
-            if location in self.locations:
-                raise SceneError(f"fit names {path!r} twice (as {'.'.join(location)}).")
-            namespace, owner, key = location
-            value = np.asarray(params[namespace][owner][key])
-            if value.shape != ():
-                raise SceneError(f"fit names {path!r}, which is not a single number (shape {value.shape}).")
-            self.locations.append(location)
+            found, first_error, value = [], None, None
+            for experiment, template in enumerate(templates):
+                try:
+                    location = resolve(template, path)
+                except SceneError as error:
+                    first_error = first_error or error
+                    continue
+                if any(location == placed for _, placed in self.placements[experiment]):
+                    raise SceneError(f"fit names {path!r} twice (as {'.'.join(location)}).")
+                here = np.asarray(template[location[0]][location[1]][location[2]])
+                if here.shape != ():
+                    raise SceneError(f"fit names {path!r}, which is not a single number (shape {here.shape}).")
+                value = here if value is None else value
+                found.append((experiment, location))
+            if not found:
+                prefix = "fit: " if len(templates) == 1 else "fit: in every experiment, "
+                raise SceneError(f"{prefix}{first_error}") from None
+            for experiment, location in found:
+                self.placements[experiment].append((len(self.entries), location))
             low, high, start = _bounds(path, spec)
             start = float(value) if start is None else float(start)
             inside = (low is None or start > low) and (high is None or start < high)
@@ -103,6 +116,11 @@ class ParameterSpace:
                 )
             self.entries.append(Bounded(path, None if low is None else float(low), None if high is None else float(high), start))
         self.names = tuple(entry.path for entry in self.entries)
+        self.locations = [location for _, location in self.placements[0]]
+
+    def fitted_in(self, experiment=0):
+        """[(entry, (namespace, owner, key))] of the fitted parameters one experiment has."""
+        return [(self.entries[index], location) for index, location in self.placements[experiment]]
 
     @property
     def size(self):
@@ -117,10 +135,11 @@ class ParameterSpace:
     def to_physical(self, z):
         return jnp.stack([e.to_physical(z[i]) for i, e in enumerate(self.entries)])
 
-    def insert(self, values, params=None):
-        """A copy of the parameter pytree with the fitted values replaced (differentiable)."""
-        params = self.template if params is None else params
-        return with_values(params, {".".join(location): values[index] for index, location in enumerate(self.locations)})
+    def insert(self, values, params=None, experiment=0):
+        """A copy of an experiment's parameter pytree with the fitted values (P,) it has
+        replaced (differentiable)."""
+        params = self.templates[experiment] if params is None else params
+        return with_values(params, {".".join(location): values[index] for index, location in self.placements[experiment]})
 
     def random_values(self, count, seed):
         """`count` start vectors drawn uniformly inside the bounds (1-99 % of the range;

@@ -115,12 +115,12 @@ def calibrate_command(arguments):
     config = load_calibration(arguments.config)
     output = output_path(arguments.output, arguments.config)
     checkpoint = output.with_name(output.name + ".checkpoint.npz")
-    sim = jaxmpm.Simulation(config.scene)
+    experiments = config.simulations()
     options = dict(config.options)
     name = options.pop("name")
     try:
         fit = inverse.calibrate(
-            sim, config.observations, config.fit, optimizer=name, checkpoint=checkpoint,
+            experiments, fit=config.fit, optimizer=name, checkpoint=checkpoint,
             resume=arguments.resume, progress=not arguments.quiet, **options,
         )
     except KeyboardInterrupt:
@@ -130,6 +130,7 @@ def calibrate_command(arguments):
         print(f"jaxmpm: {error}", file=sys.stderr)
         return 1
     fit.save(output)
+    checkpoint.unlink(missing_ok=True)      # the fit is written: the checkpoint has served
     print(fit.summary())
     print(f"wrote {output}")
     return 0

@@ -14,7 +14,7 @@ import pytest
 
 import inverse
 import jaxmpm
-from inverse.calibrate import observation_data, residual_function
+from inverse.experiments import observation_data, residual_function
 from inverse.fit import gauss_newton
 from inverse.parameters import ParameterSpace
 from jaxmpm import SceneError
@@ -103,7 +103,7 @@ def test_loss_gradient_matches_central_differences():
     sim = twin_simulation()
     observations = twin_observations(noise=1e-5)
     space = ParameterSpace(sim.params, FIT)
-    residuals = residual_function(sim, observations, space)
+    residuals = residual_function(sim, observations, space.insert)
     data = observation_data(sim, observations)
     base = sim.cast(sim.params)
 
