@@ -8,6 +8,9 @@ One experiment:
     [noise]                                    # optional: noise std of each probe, its units
     footing = 1.0e-5
 
+    [window]                                   # optional: each value is the probe's mean over
+    thrust = 0.01                              # this window [s] centred on its time
+
 Several experiments sharing the fitted parameters (instead of scene/observations/noise):
 
     [[experiments]]
@@ -16,6 +19,7 @@ Several experiments sharing the fitted parameters (instead of scene/observations
     observations = "slow.csv"
     set = { "bodies.footing.velocity" = [0.0, -0.02] }   # optional: this experiment's own values
     noise = { footing = 1.0e-5 }                         # optional
+    window = { footing = 0.01 }                          # optional
 
     [[experiments]]
     name = "fast"
@@ -85,7 +89,8 @@ class CalibrationConfig:
         return experiments
 
 
-def _noise(table: _Table) -> dict:
+def _per_probe(table: _Table) -> dict:
+    """{probe: number} of a [noise] or [window] table."""
     table.known = list(table.data)
     return {name: table.get(name, "float") for name in table.data}
 
@@ -93,8 +98,9 @@ def _noise(table: _Table) -> dict:
 def _experiment(table: _Table, folder: Path, name=None) -> ExperimentConfig:
     scene_path = folder / table.get("scene", "str")
     scene = load_scene(scene_path)
-    noise = _noise(table.table("noise", {}))
-    observations = load_observations(folder / table.get("observations", "str"), sigma=noise)
+    noise = _per_probe(table.table("noise", {}))
+    window = _per_probe(table.table("window", {}))
+    observations = load_observations(folder / table.get("observations", "str"), sigma=noise, window=window)
     fixed = table.get("set", "any", {})
     if not isinstance(fixed, dict):
         raise SceneError(f"{table.key('set')} = {fixed!r} must be a table of dotted names and values.")
@@ -112,9 +118,9 @@ def load_calibration(path) -> CalibrationConfig:
     except UnicodeDecodeError:
         raise SceneError(f"{path} is not UTF-8 text.") from None
     root = _Table(data, "")
-    root.known = ["scene", "observations", "fit", "noise", "optimizer", "experiments"]
+    root.known = ["scene", "observations", "fit", "noise", "window", "optimizer", "experiments"]
     if "experiments" in data:
-        for key in ("scene", "observations", "noise"):
+        for key in ("scene", "observations", "noise", "window"):
             if key in data:
                 raise SceneError(f"{key} is given beside [[experiments]]: put it inside each experiment.")
         entries = root.get("experiments", "any")
@@ -123,7 +129,7 @@ def load_calibration(path) -> CalibrationConfig:
         experiments = []
         for index, entry in enumerate(entries):
             table = _Table(entry, f"experiments[{index}]")
-            table.known = ["name", "scene", "observations", "set", "noise"]
+            table.known = ["name", "scene", "observations", "set", "noise", "window"]
             experiments.append(_experiment(table, path.parent, table.get("name", "str", None)))
             table.finish()
     else:

@@ -147,21 +147,40 @@ def observation_data(sim, observations: Observations):
 
 def layout_of(observations: Observations):
     """What decides the shapes of an experiment's residuals (and so what it compiles)."""
-    return tuple((name, c.components, len(c.times)) for name, c in observations.channels.items())
+    return tuple((name, c.components, len(c.times), c.window) for name, c in observations.channels.items())
+
+
+def window_steps(window, dt) -> int:
+    """The odd number of steps that spans an averaging window of `window` seconds (1: none)."""
+    return 2 * int(round(0.5 * window / dt)) + 1
+
+
+def window_mean(history, width: int):
+    """(T, k) running mean of a probe history over `width` (odd) steps centred on each step;
+    the ends repeat the first and last values."""
+    if width == 1:
+        return history
+    half = width // 2
+    padded = jnp.concatenate([jnp.repeat(history[:1], half, axis=0), history, jnp.repeat(history[-1:], half, axis=0)])
+    total = jnp.concatenate([jnp.zeros_like(history[:1]), jnp.cumsum(padded, axis=0)])
+    return (total[width:] - total[:-width]) / width
 
 
 def residual_function(sim, observations: Observations, insert):
     """residuals(values, data, base) -> (M,) weighted residuals r_j = (y_sim(t_j) - y_j) / s_j
-    of one experiment, the simulated probes linearly interpolated to the observation times;
+    of one experiment, the simulated probes (averaged over each channel's window) linearly
+    interpolated to the observation times;
     `insert(values, base)` puts the fitted values (P,) into the parameter pytree `base`."""
     time = jnp.asarray(sim.time, sim.dtype)
-    layout = [(name, channel.components) for name, channel in observations.channels.items()]
+    layout = [(name, channel.components, window_steps(channel.window, sim.dt))
+              for name, channel in observations.channels.items()]
 
     def residuals(values, data, base):
         probes = sim.probes(insert(values, base))
         parts = []
-        for (name, components), (times, observed, scale) in zip(layout, data):
-            simulated = jnp.stack([jnp.interp(times, time, probes[name][:, k]) for k in components], axis=1)
+        for (name, components, width), (times, observed, scale) in zip(layout, data):
+            history = window_mean(probes[name], width)
+            simulated = jnp.stack([jnp.interp(times, time, history[:, k]) for k in components], axis=1)
             parts.append(((simulated - observed) / scale).ravel())
         return jnp.concatenate(parts)
 

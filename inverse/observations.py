@@ -1,9 +1,11 @@
 """Observations: measured probe histories to calibrate against.
 
 A `Channel` is one probe's measured history: times (M,) [s], values (M, c) for the probe
-components it covers (e.g. only the vertical displacement, component 1), and an optional noise
-standard deviation per component (c,). Sources: numpy arrays, CSV files, HDF5 files (including
-a jaxmpm output file).
+components it covers (e.g. only the vertical displacement, component 1), an optional noise
+standard deviation per component (c,), and an optional averaging window [s]: a measurement
+that is the mean of the probe over the window centred on each time (a load cell's bandwidth;
+the contact force of a rigid body alternates from step to step about its mean). Sources: numpy
+arrays, CSV files, HDF5 files (including a jaxmpm output file).
 
 CSV layout: a header `time, top[0], top[1], thrust[0]`; each column after `time` is one
 component (`name[k]`) of a probe; rows are observation times.
@@ -26,15 +28,17 @@ COLUMN = re.compile(r"^\s*([A-Za-z_][\w\-]*)\[(\d+)\]\s*$")
 @dataclasses.dataclass(frozen=True)
 class Channel:
     """times: (M,) strictly increasing [s]; values: (M, c); components: the c probe components
-    observed; sigma: (c,) noise standard deviation per component, or None (unknown)."""
+    observed; sigma: (c,) noise standard deviation per component, or None (unknown); window:
+    the averaging window [s] of each value (0: the probe's value at that time)."""
 
     times: np.ndarray
     values: np.ndarray
     components: tuple[int, ...]
     sigma: np.ndarray | None = None
+    window: float = 0.0
 
 
-def make_channel(name, times, values, components=None, sigma=None) -> Channel:
+def make_channel(name, times, values, components=None, sigma=None, window=None) -> Channel:
     """A checked Channel; raises SceneError naming the probe and the bad value."""
     times = np.asarray(times, dtype=float)
     values = np.asarray(values, dtype=float)
@@ -57,7 +61,10 @@ def make_channel(name, times, values, components=None, sigma=None) -> Channel:
         sigma = np.broadcast_to(np.asarray(sigma, dtype=float), (len(components),)).copy()
         if not np.all(np.isfinite(sigma) & (sigma > 0.0)):
             raise SceneError(f"observations.{name}.sigma = {sigma.tolist()} must be positive.")
-    return Channel(times, values, components, sigma)
+    window = 0.0 if window is None else window
+    if isinstance(window, bool) or not isinstance(window, (int, float)) or not (np.isfinite(window) and window >= 0):
+        raise SceneError(f"observations.{name}.window = {window!r} must be a time >= 0 [s].")
+    return Channel(times, values, components, sigma, float(window))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,18 +74,24 @@ class Observations:
     channels: dict[str, Channel]
 
     @classmethod
-    def from_arrays(cls, data: dict, sigma: dict | None = None) -> Observations:
+    def from_arrays(cls, data: dict, sigma: dict | None = None, window: dict | None = None) -> Observations:
         """data: {probe: (times, values)} or {probe: (times, values, components)};
-        sigma: optional {probe: noise std (scalar or per component)}."""
-        sigma = sigma or {}
+        sigma: optional {probe: noise std (scalar or per component)}; window: optional
+        {probe: averaging window [s]}."""
+        sigma, window = sigma or {}, window or {}
+        for label, table in (("sigma", sigma), ("window", window)):
+            unknown = sorted(set(table) - set(data))
+            if unknown:
+                raise SceneError(f"{label}.{unknown[0]} names no observed probe (observed: {', '.join(data)}).")
         channels = {}
         for name, entry in data.items():
             times, values, *rest = entry
-            channels[name] = make_channel(name, times, values, rest[0] if rest else None, sigma.get(name))
+            channels[name] = make_channel(name, times, values, rest[0] if rest else None, sigma.get(name),
+                                          window.get(name))
         return cls(channels)
 
     @classmethod
-    def from_csv(cls, path, sigma: dict | None = None) -> Observations:
+    def from_csv(cls, path, sigma: dict | None = None, window: dict | None = None) -> Observations:
         path = Path(path)
         with open(path, newline="") as stream:
             rows = [row for row in csv.reader(stream) if row and not row[0].lstrip().startswith("#")]
@@ -103,10 +116,10 @@ class Observations:
             name: (table[:, 0], table[:, [index for _, index in pairs]], [c for c, _ in pairs])
             for name, pairs in grouped.items()
         }
-        return cls.from_arrays(data, sigma)
+        return cls.from_arrays(data, sigma, window)
 
     @classmethod
-    def from_hdf5(cls, path, sigma: dict | None = None, probes=None) -> Observations:
+    def from_hdf5(cls, path, sigma: dict | None = None, probes=None, window: dict | None = None) -> Observations:
         """A jaxmpm output file (or any file with /time and /probes/NAME (T, k))."""
         import h5py
 
@@ -122,7 +135,7 @@ class Observations:
                 data = {name: (times, file["probes"][name][()]) for name in names}
         except OSError as error:
             raise SceneError(f"{path} is not a readable HDF5 file ({error}).") from None
-        return cls.from_arrays(data, sigma)
+        return cls.from_arrays(data, sigma, window)
 
     def to_csv(self, path):
         """Write channels that share their times as one CSV file (see the module docstring)."""
@@ -146,15 +159,15 @@ class Observations:
         return all(c.sigma is not None for c in self.channels.values())
 
 
-def load_observations(path, sigma: dict | None = None) -> Observations:
+def load_observations(path, sigma: dict | None = None, window: dict | None = None) -> Observations:
     """Read observations from a .csv or .h5/.hdf5 file."""
     path = Path(path)
     if not path.exists():
         raise SceneError(f"observations file {str(path)!r} does not exist.")
     if path.suffix.lower() == ".csv":
-        return Observations.from_csv(path, sigma)
+        return Observations.from_csv(path, sigma, window)
     if path.suffix.lower() in (".h5", ".hdf5"):
-        return Observations.from_hdf5(path, sigma)
+        return Observations.from_hdf5(path, sigma, window=window)
     raise SceneError(f"observations file {str(path)!r} must be .csv, .h5 or .hdf5.")
 
 

@@ -1,0 +1,233 @@
+"""Calibration on large-deformation twins: the figures of docs/calibration.md.
+
+    python benchmarks/calibration_study.py                  # every study (about an hour on 2 cores)
+    python benchmarks/calibration_study.py --only heap_noise
+
+- heap_optimizers: the heap twin (examples/calibrate_heap_scene.toml, a viscoplastic column
+  slumping several cells), noise-free, from a start 30 % away: Levenberg–Marquardt and
+  L-BFGS with quadratic B-splines, and Levenberg–Marquardt with linear shape functions;
+- smoothness: on the heap, the forward-mode derivative of the observed residuals against
+  central secants of relative step 1e-6 ... 1e-2, per shape function;
+- heap_noise: the heap twin with Gaussian noise of 2 % of each component's peak, ten seeds:
+  is the truth inside the reported 2 sigma?
+- rates: the footing pushed at one and at two rates (examples/calibrate_rates_scene.toml):
+  the correlation of fluidity and exponent, and the recovered values;
+- wall: a rigid retaining wall pushed over by viscoplastic backfill (examples/
+  calibrate_wall_scene.toml), fitted to the wall top's displacement and the thrust.
+A study, not a test: it prints markdown tables and writes each into its section of
+docs/calibration.md (between <!-- NAME:begin --> and <!-- NAME:end -->; --no-write to print only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "calibration.md"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "examples"))
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import calibrate_heap as heap  # noqa: E402
+import calibrate_rates as rates  # noqa: E402
+import inverse  # noqa: E402
+import jaxmpm  # noqa: E402
+from throughput import machine_info, write_section  # noqa: E402
+
+WALL_SCENE = ROOT / "examples" / "calibrate_wall_scene.toml"
+WALL_TRUTH = {"sand.friction_angle": 30.0, "sand.fluidity": 5.0, "sand.exponent": 2.0}
+WALL_START = {"sand.friction_angle": 39.0, "sand.fluidity": 3.5, "sand.exponent": 2.6}
+WALL_FIT = {"sand.friction_angle": (15.0, 45.0), "sand.fluidity": (0.1, 100.0), "sand.exponent": (1.0, 5.0)}
+WALL_OBSERVED = (("wall_top", [0, 1]), ("thrust", [0]))
+
+
+class Table:
+    """Markdown lines, printed as they come and kept for the docs section."""
+
+    def __init__(self):
+        self.lines = []
+
+    def __call__(self, line=""):
+        print(line, flush=True)
+        self.lines.append(line)
+
+    @property
+    def text(self):
+        return "\n".join(self.lines)
+
+
+def machine_line():
+    info = machine_info()
+    return (f"Measured {time.strftime('%Y-%m-%d')} on {info.get('cpu', 'this machine')} "
+            f"({info.get('cores', '?')} cores), JAX {jax.__version__}, float64.")
+
+
+def recovery_rows(table, label, fit, truth, *, first=True):
+    errors = {name: fit.params[name] - truth[name] for name in fit.names}
+    cost = fit.cost
+    cells = []
+    for name in fit.names:
+        relative = errors[name] / truth[name]
+        shown = f"{errors[name]:+.2g}°" if name.endswith("friction_angle") else f"{relative:+.2%}"
+        cells.append(f"{fit.params[name]:.4f} ± {fit.stderr[name]:.2g} ({shown})")
+    table(f"| {label} | {' | '.join(cells)} | {fit.iterations} | {fit.evaluations} | "
+          f"{cost['wall_time']:.0f} ({cost['first_iteration']:.0f}) | {cost['seconds_per_iteration']:.1f} | "
+          f"{cost['peak_memory_mb']:.0f} | {fit.reasons[fit.best_start]} |")
+
+
+def recovery_header(table, names):
+    table(f"| case | {' | '.join(names)} | iterations | simulations | wall s (first it.) | s / it. | peak MB | stopped |")
+    table("|---|" + "---|" * (len(names) + 6))
+
+
+def heap_optimizers(table):
+    table("### Heap twin, noise-free, start 30 % away")
+    table()
+    table(machine_line())
+    table()
+    recovery_header(table, ["φ [°]", "γ [1/s]", "N"])
+    for label, optimizer, shape in (("LM, bspline2", "lm", "bspline2"), ("L-BFGS, bspline2", "lbfgs", "bspline2"),
+                                    ("LM, linear", "lm", "linear")):
+        sim = heap.heap_simulation(shape)
+        observations = heap.twin_observations(sim, 0.0)
+        fit = inverse.calibrate(sim, observations, heap.FIT, starts=[heap.START], optimizer=optimizer,
+                                max_iterations=50, progress=False)
+        recovery_rows(table, label, fit, heap.TRUTH)
+    table()
+    table("Simulations: for LM one forward pass carrying 3 tangents; for L-BFGS one forward and one "
+          "reverse pass (line-search evaluations included). The first iteration's time includes compiling. "
+          "The linear-shape data are the linear-shape scene's own (a twin of itself), so the optimum is the truth there too.")
+
+
+def smoothness(table):
+    table("### How smooth is the heap's misfit? Forward-mode derivative against central secants")
+    table()
+    table(machine_line())
+    table()
+    table("| shape | parameter | 1e-6 | 1e-5 | 1e-4 | 1e-3 | 1e-2 |")
+    table("|---|---|---|---|---|---|---|")
+    for shape in ("linear", "gimp", "bspline2"):
+        sim = heap.heap_simulation(shape)
+        observations = heap.twin_observations(sim, 0.0)
+        experiment = inverse.experiments.experiments_from(sim, observations)[0]
+        space = inverse.ParameterSpace(sim.params, heap.FIT)
+        residuals = inverse.experiments.residual_function(sim, experiment.observations, space.insert)
+        data = inverse.experiments.observation_data(sim, experiment.observations)
+        base = sim.cast(sim.params)
+        function = jax.jit(lambda values: residuals(values, data, base))
+        point = jnp.array([heap.START[name] for name in heap.FIT])
+        jacobian = np.asarray(jax.jit(jax.jacfwd(function))(point))
+        for index, name in enumerate(heap.FIT):
+            cells = []
+            for relative in (1e-6, 1e-5, 1e-4, 1e-3, 1e-2):
+                step = relative * float(point[index])
+                secant = (np.asarray(function(point.at[index].add(step))) -
+                          np.asarray(function(point.at[index].add(-step)))) / (2 * step)
+                cells.append(f"{np.linalg.norm(secant - jacobian[:, index]) / np.linalg.norm(jacobian[:, index]):.1e}")
+            table(f"| {shape} | {name.split('.')[1]} | {' | '.join(cells)} |")
+    table()
+    table("Each entry: ‖secant − J e_k‖ / ‖J e_k‖ over all observed residuals, at the start point "
+          "(φ 26°, γ 3.5, N 2.6), for a central secant of the given relative step.")
+
+
+def heap_noise(table, seeds=10, noise=0.02):
+    table(f"### Heap twin, {noise:.0%} noise, {seeds} seeds (LM, bspline2, start 30 % away)")
+    table()
+    table(machine_line())
+    table()
+    table("| seed | φ [°] | γ [1/s] | N | error / σ (φ, γ, N) | all inside 2σ | iterations | wall s |")
+    table("|---|---|---|---|---|---|---|---|")
+    sim = heap.heap_simulation("bspline2")
+    inside_count = 0
+    for seed in range(seeds):
+        observations = heap.twin_observations(sim, noise, seed=seed)
+        fit = inverse.calibrate(sim, observations, heap.FIT, starts=[heap.START], max_iterations=50, progress=False)
+        ratios = [abs(fit.params[n] - heap.TRUTH[n]) / fit.stderr[n] for n in fit.names]
+        inside = all(r < 2.0 for r in ratios)
+        inside_count += inside
+        cells = [f"{fit.params[n]:.4f} ± {fit.stderr[n]:.2g}" for n in fit.names]
+        table(f"| {seed} | {' | '.join(cells)} | {', '.join(f'{r:.2f}' for r in ratios)} | "
+              f"{'yes' if inside else 'no'} | {fit.iterations} | {fit.wall_time:.0f} |")
+    table()
+    table(f"The truth is inside the reported 2σ of every parameter in {inside_count} of {seeds} repeats.")
+
+
+def rate_study(table, noise=0.02):
+    table(f"### One rate against two: the footing pushed into viscoplastic sand ({noise:.0%} noise)")
+    table()
+    table(machine_line())
+    table()
+    recovery_header(table, ["φ [°]", "γ [1/s]", "N"])
+    sim = jaxmpm.Simulation(jaxmpm.load_scene(rates.SCENE))
+    both = rates.experiments(sim, noise)
+    correlations = {}
+    for label, chosen in (("0.02 m/s alone", both[:1]), ("0.1 m/s alone", both[1:]), ("both rates", both)):
+        fit = inverse.calibrate(chosen, fit=rates.FIT, starts=[rates.START], max_iterations=50, progress=False)
+        recovery_rows(table, label, fit, rates.TRUTH)
+        gamma, exponent = fit.names.index("sand.fluidity"), fit.names.index("sand.exponent")
+        correlations[label] = fit.correlation[gamma, exponent]
+    table()
+    table("Correlation of fluidity and exponent: " +
+          ", ".join(f"{label} {value:+.3f}" for label, value in correlations.items()) + ".")
+
+
+def wall_observations(sim, noise, seed=0, every=0.01):
+    """Wall-top displacement and the thrust averaged over 0.01 s (its `window`), every 0.01 s
+    after the start, plus Gaussian noise of `noise` x each component's peak."""
+    probes = sim.probes()
+    stride = max(1, int(round(every / sim.dt)))
+    rng = np.random.default_rng(seed)
+    windows = {"thrust": 0.01}
+    data, sigma = {}, {}
+    for name, components in WALL_OBSERVED:
+        width = inverse.experiments.window_steps(windows.get(name, 0.0), sim.dt)
+        history = np.asarray(inverse.experiments.window_mean(probes[name], width))
+        values = history[::stride][1:, components]
+        scale = noise * np.max(np.abs(values), axis=0)
+        data[name] = (sim.time[::stride][1:], values + scale * rng.standard_normal(values.shape), components)
+        sigma[name] = scale
+    return inverse.Observations.from_arrays(data, sigma=sigma if noise > 0 else None, window=windows)
+
+
+def wall(table):
+    table("### Retaining wall pushed over by viscoplastic backfill: wall-top displacement and thrust")
+    table()
+    table(machine_line())
+    table()
+    sim = jaxmpm.Simulation(jaxmpm.load_scene(WALL_SCENE))
+    table(f"{sim.point_count} points, {sim.steps} steps.")
+    table()
+    recovery_header(table, ["φ [°]", "γ [1/s]", "N"])
+    for label, noise in (("noise-free", 0.0), ("2 % noise", 0.02)):
+        fit = inverse.calibrate(sim, wall_observations(sim, noise), WALL_FIT, starts=[WALL_START],
+                                max_iterations=50, progress=False)
+        recovery_rows(table, label, fit, WALL_TRUTH)
+
+
+STUDIES = {"heap_optimizers": heap_optimizers, "smoothness": smoothness, "heap_noise": heap_noise,
+           "rates": rate_study, "wall": wall}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", choices=list(STUDIES), action="append")
+    parser.add_argument("--no-write", action="store_true")
+    arguments = parser.parse_args()
+    for name in arguments.only or list(STUDIES):
+        table = Table()
+        STUDIES[name](table)
+        if not arguments.no_write:
+            write_section(f"<!-- {name}:begin -->", f"<!-- {name}:end -->", table.text, DOC)
+
+
+if __name__ == "__main__":
+    main()
