@@ -28,7 +28,7 @@ import numpy as np
 
 from inverse.observations import Observations, check_against, default_scale, load_observations
 from jaxmpm.errors import SceneError
-from jaxmpm.parameters import with_values
+from jaxmpm.parameters import resolve, with_values
 
 
 def as_observations(source, sigma: dict | None = None, label: str = "observations") -> Observations:
@@ -110,14 +110,24 @@ def base_parameters(experiment: Experiment):
     """The experiment's parameter pytree: the scene's values with its `set` values (checked
     against the fixed time step), as arrays of the scene's dtype."""
     sim = experiment.sim
+    fixed = {}
+    for name, value in experiment.set.items():
+        try:
+            fixed[name] = np.asarray(value, float)      # a list is one value, not a pytree of scalars
+        except (TypeError, ValueError):
+            raise SceneError(f"experiments.{experiment.name}.set.{name} = {value!r} must be a number or an array.") from None
+        if not np.all(np.isfinite(fixed[name])):
+            raise SceneError(f"experiments.{experiment.name}.set.{name} = {value!r} must be finite.")
     try:
-        params = with_values(sim.params, experiment.set)
+        params = with_values(sim.params, fixed)
     except SceneError as error:
         raise SceneError(f"experiments.{experiment.name}.set: {error}") from None
     params = sim.cast(params)
-    for name, value in experiment.set.items():
-        if not np.all(np.isfinite(np.asarray(value, float))):
-            raise SceneError(f"experiments.{experiment.name}.set.{name} = {value!r} must be finite.")
+    for name, value in fixed.items():
+        namespace, owner, key = resolve(sim.params, name)
+        expected = np.shape(sim.params[namespace][owner][key])
+        if value.shape != expected:
+            raise SceneError(f"experiments.{experiment.name}.set.{name} has shape {value.shape}; the parameter has {expected}.")
     sim.check_time_step(params)
     return params
 
