@@ -1,6 +1,7 @@
 """Synthetic twin on a collapsing heap: the large-deformation calibration MPM is needed for.
 
     python examples/calibrate_heap.py [--noise 0.02] [--optimizer lm] [--shape bspline2] [--seed 0]
+    python examples/calibrate_heap.py --noise 0.02 --write-observations examples/calibrate_heap_observations.csv
 
 1. simulate examples/calibrate_heap_scene.toml (a viscoplastic sand column slumping into a
    heap; its crest travels about five cells) with its own, true parameters;
@@ -8,6 +9,9 @@
    of `--noise` times each component's largest magnitude (0 = noise-free);
 3. calibrate friction angle, fluidity and exponent from a start 30 % away from the truth;
 4. print recovered values, standard errors, errors against the truth and the cost.
+With --write-observations PATH it only writes the noisy observations (the file that
+`jaxmpm calibrate examples/calibrate_heap.calibration.toml` reads) and stops; their noise
+standard deviations go in that file's [noise] table.
 """
 
 import argparse
@@ -68,9 +72,16 @@ def main():
     parser.add_argument("--shape", default="bspline2", choices=["linear", "gimp", "bspline2"])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-iterations", type=int, default=50)
+    parser.add_argument("--write-observations", metavar="PATH", help="write the observations CSV and stop")
     arguments = parser.parse_args()
     sim = heap_simulation(arguments.shape)
     observations = twin_observations(sim, arguments.noise, arguments.seed)
+    if arguments.write_observations:
+        observations.to_csv(arguments.write_observations)
+        for name, channel in observations.channels.items():
+            print(f"{name}: sigma {channel.sigma.tolist() if channel.sigma is not None else None}")
+        print(f"wrote {arguments.write_observations}")
+        return
     fit = inverse.calibrate(sim, observations, FIT, starts=[START], optimizer=arguments.optimizer,
                             max_iterations=arguments.max_iterations)
     report(fit)

@@ -6,7 +6,7 @@ One experiment:
     observations = "twin_observations.csv"     # .csv or .h5 (e.g. a jaxmpm output file)
 
     [noise]                                    # optional: noise std of each probe, its units
-    footing = 1.0e-5
+    footing = 1.0e-5                           # (or one value per observed component: [1e-5, 2e-5])
 
     [window]                                   # optional: each value is the probe's mean over
     thrust = 0.01                              # this window [s] centred on its time
@@ -50,7 +50,7 @@ import tomllib
 from pathlib import Path
 
 from jaxmpm.errors import SceneError
-from jaxmpm.scene import _Table, load_scene
+from jaxmpm.scene import _Table, convert, load_scene
 from inverse.observations import load_observations
 
 OPTIONS = {"name": ("str", "lm"), "max_iterations": ("int", 50), "starts": ("int", 1),
@@ -89,16 +89,24 @@ class CalibrationConfig:
         return experiments
 
 
-def _per_probe(table: _Table) -> dict:
-    """{probe: number} of a [noise] or [window] table."""
+def _per_probe(table: _Table, per_component=False) -> dict:
+    """{probe: number} of a [window] table, or of a [noise] table (per_component: a number or
+    one number per observed component)."""
     table.known = list(table.data)
-    return {name: table.get(name, "float") for name in table.data}
+    values = {}
+    for name in table.data:
+        value = table.get(name, "any")
+        if per_component and isinstance(value, list) and value:
+            values[name] = [convert(f"{table.key(name)}[{k}]", item, "float") for k, item in enumerate(value)]
+        else:
+            values[name] = convert(table.key(name), value, "float")
+    return values
 
 
 def _experiment(table: _Table, folder: Path, name=None) -> ExperimentConfig:
     scene_path = folder / table.get("scene", "str")
     scene = load_scene(scene_path)
-    noise = _per_probe(table.table("noise", {}))
+    noise = _per_probe(table.table("noise", {}), per_component=True)
     window = _per_probe(table.table("window", {}))
     observations = load_observations(folder / table.get("observations", "str"), sigma=noise, window=window)
     fixed = table.get("set", "any", {})

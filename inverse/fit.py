@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from inverse.experiments import window_mean, window_steps
 from jaxmpm.files import atomic_path
 
 
@@ -188,8 +189,12 @@ class Fit:
         figure, axes = plt.subplots(1, len(channels) + 1, figsize=(4 * (len(channels) + 1), 3.2))
         for axis, (run, name, component, index) in zip(axes, channels):
             channel = run.observations.channels[name]
+            simulated = run.probes[name]
+            if channel.window > 0 and len(run.time) > 1:      # what the observation measures
+                simulated = np.asarray(window_mean(simulated, window_steps(channel.window, run.time[1] - run.time[0])))
             axis.plot(channel.times, channel.values[:, index], ".", ms=3, color="0.4", label="observed")
-            axis.plot(run.time, run.probes[name][:, component], "-", color="C3", label="fit")
+            axis.plot(run.time, simulated[:, component], "-", color="C3",
+                      label=f"fit (mean over {channel.window:g} s)" if channel.window > 0 else "fit")
             axis.set_title(f"{run.name}: {name}[{component}]" if several else f"{name}[{component}]")
             axis.set_xlabel("t [s]")
             axis.legend(fontsize=7)

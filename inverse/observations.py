@@ -58,7 +58,11 @@ def make_channel(name, times, values, components=None, sigma=None, window=None) 
     if np.any(np.diff(times) <= 0.0):
         raise SceneError(f"observations.{name}.times must be strictly increasing.")
     if sigma is not None:
-        sigma = np.broadcast_to(np.asarray(sigma, dtype=float), (len(components),)).copy()
+        try:
+            sigma = np.broadcast_to(np.asarray(sigma, dtype=float), (len(components),)).copy()
+        except (TypeError, ValueError):
+            raise SceneError(f"observations.{name}.sigma = {sigma!r} must be one number or one per observed "
+                             f"component ({len(components)}).") from None
         if not np.all(np.isfinite(sigma) & (sigma > 0.0)):
             raise SceneError(f"observations.{name}.sigma = {sigma.tolist()} must be positive.")
     window = 0.0 if window is None else window

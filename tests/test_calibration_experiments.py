@@ -4,7 +4,9 @@ Twins (data made by the scene itself from known parameters, docs/calibration.md)
 - a small heap: a viscoplastic sand column slumping under gravity, its points crossing cells
   (a coarse version of examples/calibrate_heap_scene.toml);
 - a footing pushed at two rates into viscoplastic sand (a coarse version of
-  examples/calibrate_rates_scene.toml), the two experiments sharing one compiled simulation.
+  examples/calibrate_rates_scene.toml), the two experiments sharing one compiled simulation;
+- a rigid retaining wall pushed over by its backfill (a coarse version of
+  examples/calibrate_wall_scene.toml), observed through the wall top and the thrust.
 """
 
 import functools
@@ -31,6 +33,9 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 sys.path.insert(0, str(EXAMPLES))
 import calibrate_heap as heap  # noqa: E402
 import calibrate_rates as rates  # noqa: E402
+
+sys.path.insert(0, str(EXAMPLES.parent / "benchmarks"))
+from calibration_study import wall_observations  # noqa: E402
 
 
 def small_heap_toml(shape="bspline2"):
@@ -121,6 +126,23 @@ def test_heap_twin_with_noise_brackets_the_truth_in_two_standard_errors():
         inside += [abs(fit.params[n] - heap.TRUTH[n]) < 2.0 * fit.stderr[n] for n in fit.names]
         assert all(np.isfinite(fit.stderr[n]) and fit.stderr[n] > 0 for n in fit.names)
     assert sum(inside) >= 5, inside
+
+
+def test_wall_twin_recovers_friction_angle_and_wall_friction_from_thrust():
+    # Targets beyond point displacements: the thrust (contact force, averaged over 0.01 s) and
+    # the wall top. The wall turns over several centimetres; both the soil's friction angle and
+    # the interface friction come back from a start 20-25 % away.
+    text = (EXAMPLES / "calibrate_wall_scene.toml").read_text()
+    text = text.replace("cell = 0.025", "cell = 0.05").replace("duration = 0.5", "duration = 0.2")
+    sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(text))
+    observations = wall_observations(sim, 0.0)
+    assert observations.channels["thrust"].window == 0.01
+    fit = inverse.calibrate(sim, observations, {"sand.friction_angle": (15.0, 45.0),
+                                                "contacts.backfill/wall.friction": (0.05, 0.9)},
+                            starts=[{"sand.friction_angle": 36.0, "contacts.backfill/wall.friction": 0.3}],
+                            progress=False)
+    assert abs(fit.params["sand.friction_angle"] - 30.0) < 0.2
+    assert fit.params["contacts.backfill/wall.friction"] == pytest.approx(0.4, rel=0.05)
 
 
 def test_linear_shapes_with_points_crossing_cells_warn():
