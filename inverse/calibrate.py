@@ -40,7 +40,8 @@ import optax
 
 from inverse import levenberg_marquardt
 from inverse.experiments import (
-    check_observations, experiments_from, group_experiments, layout_of, problem_arguments, problem_residuals,
+    base_parameters, check_observations, experiment_bases, experiments_from, group_experiments, layout_of,
+    problem_arguments, problem_residuals,
 )
 from inverse.fit import ExperimentFit, Fit, gauss_newton
 from inverse.parameters import ParameterSpace
@@ -416,11 +417,7 @@ def _finish(experiments, groups, space, problem, data, bases, run, start_values,
         noise_known=all(e.observations.noise_known for e in experiments),
     )
     runs, warnings_found = [], [warning] if warning else []
-    for index, experiment in enumerate(experiments):
-        base = bases[next(g for g, group in enumerate(groups) if index in group.members)]
-        group = next(group for group in groups if index in group.members)
-        if len(group.members) > 1:
-            base = jax.tree_util.tree_map(lambda leaf: leaf[group.members.index(index)], base)
+    for index, (experiment, base) in enumerate(zip(experiments, experiment_bases(groups, bases, len(experiments)))):
         sim = experiment.sim
         params = space.insert(jnp.asarray(values, dtype), base, experiment=index)
         probes, final_state = sim._probes(params, sim.initial_state(params))
@@ -472,8 +469,6 @@ def linear_shape_warning(experiment, space, start_values, index) -> str:
     sim = experiment.sim
     if sim.scene.numerics.shape != "linear":
         return ""
-    from inverse.experiments import base_parameters
-
     params = space.insert(jnp.asarray(start_values, sim.dtype), base_parameters(experiment), experiment=index)
     initial = sim.initial_state(params)
     _, final = sim._probes(params, initial)

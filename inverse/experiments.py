@@ -236,6 +236,16 @@ def problem_arguments(experiments, groups):
     return tuple(data), tuple(bases)
 
 
+def experiment_bases(groups, bases, count):
+    """The parameter pytree of each of `count` experiments, unstacked from its group's."""
+    unstacked = [None] * count
+    for group, base in zip(groups, bases):
+        for position, index in enumerate(group.members):
+            unstacked[index] = base if len(group.members) == 1 else jax.tree_util.tree_map(
+                lambda leaf, position=position: leaf[position], base)
+    return unstacked
+
+
 def problem_residuals(groups):
     """residuals(values, data, bases) -> (M,): every experiment's residuals, in group order
     (a group of several members is vmapped)."""

@@ -1,4 +1,6 @@
-"""Calibration: loss gradients, twin recovery, uncertainty, resume, bad input.
+"""Calibration on a small-deformation twin: loss gradients, recovery with each optimiser,
+uncertainty, resume, bad input (tests/test_calibration_experiments.py: large deformation,
+several experiments).
 
 The twin is a coarse version of examples/calibrate_twin_scene.toml: a heavy footing dropped on
 viscoplastic sand (truth: friction_angle 25, fluidity 5, exponent 2). Its settlement stays
@@ -145,6 +147,25 @@ def test_multistart_batch_matches_separate_runs():
         np.testing.assert_allclose(together.history["loss"][:, index], alone.history["loss"][:, 0], rtol=1e-10)
         np.testing.assert_allclose(together.final_values[index], alone.final_values[0], rtol=1e-10)
     assert np.all(np.diff(together.history["loss"], axis=0) < 0.0)   # Adam descends from both
+
+
+def test_levenberg_marquardt_and_lbfgs_reach_the_same_optimum():
+    # On a smooth misfit (no point crosses a cell) the two optimisers, from the same start,
+    # must agree on the least-squares optimum of the same noisy data far inside its standard
+    # errors; Levenberg–Marquardt's starts run vmapped exactly as they run alone.
+    sim = twin_simulation()
+    observations = twin_observations(noise=1e-5, seed=2)
+    lm = inverse.calibrate(sim, observations, FIT, starts=[WRONG], optimizer="lm", max_iterations=40, progress=False)
+    lbfgs = inverse.calibrate(sim, observations, FIT, starts=[WRONG], optimizer="lbfgs", max_iterations=60,
+                              progress=False)
+    for name in FIT:
+        assert abs(lm.params[name] - lbfgs.params[name]) < 0.01 * lm.stderr[name], name
+    assert lm.loss == pytest.approx(lbfgs.loss, rel=1e-6)
+    other = {"sand.friction_angle": 20.0, "sand.fluidity": 8.0, "sand.exponent": 1.5}
+    together = inverse.calibrate(sim, observations, FIT, starts=[WRONG, other], max_iterations=3, progress=False)
+    alone = inverse.calibrate(sim, observations, FIT, starts=[other], max_iterations=3, progress=False)
+    np.testing.assert_allclose(together.history["loss"][:, 1], alone.history["loss"][:, 0], rtol=1e-10)
+    np.testing.assert_allclose(together.history["loss"][:, 0], lm.history["loss"][:3, 0], rtol=1e-10)
 
 
 def test_standard_errors_shrink_with_noise_and_bracket_the_truth():
