@@ -46,20 +46,24 @@ from inverse.experiments import (
 from inverse.fit import ExperimentFit, Fit, gauss_newton
 from inverse.parameters import ParameterSpace
 from jaxmpm.errors import SceneError, SimulationError
+from jaxmpm.parameters import resolve
 from jaxmpm.files import atomic_path
 from jaxmpm.simulation import STEP_SLACK, describe_failure
 from jaxmpm.xla_options import jit_reverse_mode
 
 OPTIMIZERS = ("lm", "lbfgs", "adam")
-LM_DAMPING_LIMIT = 1e16     # LM damping beyond this x max diag(J^T J): no step lowers the loss
+LM_DAMPING_LIMIT = 1e16     # Levenberg–Marquardt damping beyond this: no step lowers the loss
 
 
 def check_stable_over_bounds(experiment, space: ParameterSpace, index: int):
     """SceneError if the bounds let a fitted modulus, Poisson's ratio or density reach values for
-    which the scene's fixed time step would be unstable (c_p grows with E and nu, falls with rho)."""
+    which the scene's fixed time step would be unstable (c_p grows with E and nu, falls with rho),
+    from the experiment's own values (its `set` included)."""
     extremes = {"young": "high", "poisson": "high", "density": "low"}
     sim = experiment.sim
-    materials = sim.params["materials"]
+    base = base_parameters(experiment)
+    materials = {name: {key: float(value) for key, value in values.items()}
+                 for name, values in base["materials"].items()}
     for material_name in materials:
         values = dict(materials[material_name])
         for entry, (namespace, owner, key) in space.fitted_in(index):
@@ -70,7 +74,7 @@ def check_stable_over_bounds(experiment, space: ParameterSpace, index: int):
                 raise SceneError(f"fit.{entry.path} needs a {extremes[key]} bound: the time step is fixed "
                                  "from the scene, and an unbounded value could make it unstable.")
             values[key] = bound
-        extreme = {**sim.params, "materials": {**materials, material_name: values}}
+        extreme = {**base, "materials": {**materials, material_name: values}}
         limit = sim.material_time_steps(extreme).get(material_name, float("inf"))
         if sim.dt > limit * (1.0 + STEP_SLACK):
             raise SceneError(
@@ -315,6 +319,15 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
     dtype = dtypes.pop()
     space = ParameterSpace([e.sim.params for e in experiments], fit)
     for index, experiment in enumerate(experiments):
+        fitted = {location: entry.path for entry, location in space.fitted_in(index)}
+        for name in experiment.set:
+            try:
+                location = resolve(experiment.sim.params, name)
+            except SceneError:
+                continue                    # base_parameters names the bad key
+            if location in fitted:
+                raise SceneError(f"experiments.{experiment.name}.set.{name} is also fitted (as {fitted[location]!r}): "
+                                 "a value cannot be both fixed and fitted.")
         check_observations(experiment)
         check_stable_over_bounds(experiment, space, index)
     groups = group_experiments(experiments, space)
@@ -337,8 +350,8 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
     else:
         state = problem.start(z0, data, bases)
         run = Progress(0, np.asarray(z0), np.full(count, np.inf), np.zeros(count, bool), [""] * count,
-                       [], [], [], [], [], [], [], count if optimizer == "lm" else 0, np.array(z0),
-                       np.full(count, np.inf))
+                       [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(state)], [], [], [], [], [], [],
+                       count * len(experiments) if optimizer == "lm" else 0, np.array(z0), np.full(count, np.inf))
     z = jnp.asarray(run.z, dtype)
     saved = copy.deepcopy(run)          # the last complete iteration: what an interrupt keeps
     bar = tqdm(total=max_iterations, initial=run.iteration, unit="it", disable=not progress, desc="calibrate")
@@ -350,7 +363,7 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
             new_z, new_state, value, gradient_norm = step(z, state, data, bases)
             value, gradient_norm = np.asarray(value), np.asarray(gradient_norm)
             running = ~run.done
-            run.evaluations += int(np.sum(running)) * (1 + _linesearch_steps(new_state, optimizer))
+            run.evaluations += int(np.sum(running)) * len(experiments) * (1 + _linesearch_steps(new_state, optimizer))
             # the value and gradient were taken at z: record them, then decide whether to stop there
             run.history_loss.append(value)
             run.history_values.append(np.asarray(jax.vmap(space.to_physical)(z)))
@@ -403,11 +416,16 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
 
 
 def _finish(experiments, groups, space, problem, data, bases, run, start_values, optimizer, started, warning):
-    """The Fit: each start's answer is its best finite point (the final one unless it went
-    astray); the best start's covariance and every experiment's best-fit probes."""
+    """The Fit: each start's answer is the better of its last point and the best finite point
+    it passed through (the last one unless it went astray); the best start's covariance and
+    every experiment's best-fit probes."""
     dtype = experiments[0].sim.dtype
-    final_z = jnp.asarray(run.best_z, dtype)
-    final_losses = np.asarray(problem.losses(final_z, data, bases))
+    last_z, best_z = jnp.asarray(run.z, dtype), jnp.asarray(run.best_z, dtype)
+    last_losses = np.asarray(problem.losses(last_z, data, bases))
+    passed_losses = np.asarray(problem.losses(best_z, data, bases))
+    take_last = np.isfinite(last_losses) & ~(passed_losses < last_losses)
+    final_z = jnp.where(jnp.asarray(take_last)[:, None], last_z, best_z)
+    final_losses = np.where(take_last, last_losses, passed_losses)
     if not np.any(np.isfinite(final_losses)):
         raise SimulationError("every start of the calibration went non-finite; narrow the bounds or change the starts.")
     best = int(np.nanargmin(np.where(np.isfinite(final_losses), final_losses, np.nan)))
@@ -425,8 +443,8 @@ def _finish(experiments, groups, space, problem, data, bases, run, start_values,
             warnings_found.append(f"best-fit run of {experiment.name}: " + describe_failure(sim, final_state))
         runs.append(ExperimentFit(experiment.name, experiment.observations, np.asarray(sim.time),
                                   {name: np.asarray(v) for name, v in probes.items()}, dict(experiment.set)))
-    # + one loss of every start, the Jacobian (P forward-mode passes ~ P simulations), the probes
-    evaluations = run.evaluations + len(start_values) + space.size + len(experiments)
+    # + two losses of every start, the covariance's Jacobian and the best-fit probes, per experiment
+    evaluations = run.evaluations + (2 * len(start_values) + 2) * len(experiments)
     return Fit(
         names=space.names,
         values=values,
@@ -482,8 +500,7 @@ def linear_shape_warning(experiment, space, start_values, index) -> str:
 
 def _damping_exhausted(state, start) -> bool:
     """Levenberg–Marquardt's damping has grown past any use: no step lowers the loss."""
-    scale = np.max(np.sum(np.asarray(state.jacobian[start]) ** 2, axis=0))
-    return float(state.damping[start]) > LM_DAMPING_LIMIT * max(scale, 1e-300)
+    return float(state.damping[start]) > LM_DAMPING_LIMIT
 
 
 def _fingerprint(experiments, space, optimizer_name, learning_rate, start_values, data):
@@ -491,6 +508,7 @@ def _fingerprint(experiments, space, optimizer_name, learning_rate, start_values
     digest = hashlib.sha256()
     for experiment in experiments:
         digest.update(experiment.sim.scene.to_toml().encode())
+        digest.update(repr(layout_of(experiment.observations)).encode())
         digest.update(repr(sorted((k, np.asarray(v).tolist()) for k, v in experiment.set.items())).encode())
     for leaf in jax.tree_util.tree_leaves(data):
         digest.update(np.asarray(leaf).tobytes())

@@ -93,6 +93,8 @@ def experiments_from(sim_or_experiments, observations) -> list[Experiment]:
             item = Experiment(*item)
         if not isinstance(item, Experiment):
             raise SceneError(f"experiments[{index}] is a {type(item).__name__}, not an inverse.Experiment.")
+        if not isinstance(item.set, dict):
+            raise SceneError(f"experiments[{index}].set = {item.set!r} must be a dict {{dotted name: value}}.")
         if not hasattr(item.sim, "probes") or not hasattr(item.sim, "structure"):
             raise SceneError(f"experiments[{index}].sim is a {type(item.sim).__name__}, not a jaxmpm.Simulation.")
         name = item.name or (f"experiment_{index}" if len(items) > 1 else item.sim.scene.name)

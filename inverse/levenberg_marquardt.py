@@ -10,8 +10,12 @@ One iteration, from z with r(z) and J(z) (Marquardt 1963; damping update of Niel
 
     (J^T J + lambda D) delta = -J^T r,     D = diag(J^T J) (floored),
     rho = (C(z) - C(z + delta)) / (C(z) - C_lin(z + delta)),   C = r.r / 2,
-    accept z + delta if rho > 0:  lambda *= max(1/3, 1 - (2 rho - 1)^3), nu = 2
-    else keep z:                  lambda *= nu, nu *= 2
+    accept z + delta if rho > 1e-4:  lambda *= max(1/3, 1 - (2 rho - 1)^3), nu = 2
+    else keep z:                     lambda *= nu, nu *= 2
+
+With D = diag(J^T J) the damping lambda is relative to the curvature of each parameter, so it
+is a plain number (lambda_0 = 1e-3) whatever the residuals' scale (a stated noise sigma scales
+J^T J by 1 / sigma^2 and leaves every step unchanged).
 
 The trial point is evaluated with its Jacobian (one forward pass with tangents), so an
 accepted step needs no further pass. Everything is a pure function of arrays, vmapped over
@@ -25,7 +29,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-INITIAL_DAMPING = 1e-3      # lambda_0 = INITIAL_DAMPING * max diag(J^T J) (Nielsen's tau)
+INITIAL_DAMPING = 1e-3      # lambda_0, relative to D = diag(J^T J)
 ACCEPT_RATIO = 1e-4         # rho above this accepts a step
 DIAGONAL_FLOOR = 1e-12      # D_ii >= DIAGONAL_FLOOR * max D (a column of zeros stays solvable)
 
@@ -53,11 +57,8 @@ def residuals_and_jacobian(residual_fn, z):
 
 def init(residual_fn, z) -> LevenbergMarquardtState:
     r, jacobian = residuals_and_jacobian(residual_fn, z)
-    diagonal = jnp.sum(jacobian * jacobian, axis=0)
-    damping = INITIAL_DAMPING * jnp.max(diagonal)
-    damping = jnp.where(jnp.isfinite(damping) & (damping > 0), damping, 1.0)
     one = jnp.ones((), z.dtype)
-    return LevenbergMarquardtState(z, r, jacobian, damping, 2.0 * one, jnp.zeros((), bool))
+    return LevenbergMarquardtState(z, r, jacobian, INITIAL_DAMPING * one, 2.0 * one, jnp.zeros((), bool))
 
 
 def damped_step(state: LevenbergMarquardtState):

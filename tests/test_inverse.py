@@ -204,6 +204,35 @@ def test_interrupted_calibration_resumes_where_it_would_have_ended(tmp_path):
     np.testing.assert_allclose(resumed.history["loss"], whole.history["loss"], rtol=1e-12)
 
 
+def test_a_calibration_interrupted_in_its_first_iteration_resumes(tmp_path, monkeypatch):
+    # Ctrl-C while the first iteration compiles must leave a checkpoint that resumes.
+    import dataclasses
+    import sys
+
+    calibration = sys.modules["inverse.calibrate"]     # the module (inverse.calibrate is the function)
+    sim = twin_simulation()
+    observations = twin_observations()
+    options = dict(starts=[WRONG], max_iterations=2, progress=False)
+    whole = inverse.calibrate(sim, observations, FIT, **options)
+    built = calibration.compiled_problem
+
+    def interrupted(*arguments):
+        def stop(*_):
+            raise KeyboardInterrupt
+
+        return dataclasses.replace(built(*arguments), first=stop)
+
+    checkpoint = tmp_path / "fit.checkpoint.npz"
+    monkeypatch.setattr(calibration, "compiled_problem", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        inverse.calibrate(sim, observations, FIT, checkpoint=checkpoint, **options)
+    monkeypatch.setattr(calibration, "compiled_problem", built)
+    resumed = inverse.calibrate(sim, observations, FIT, checkpoint=checkpoint, resume=True, **options)
+    np.testing.assert_allclose(resumed.values, whole.values, rtol=1e-12)
+    # the last step's point counts: after 2 iterations the answer is that point, not the one before
+    assert whole.loss < whole.history["loss"][-1, 0]
+
+
 def test_observation_files_round_trip(tmp_path):
     observations = twin_observations(noise=1e-5)
     observations.to_csv(tmp_path / "obs.csv")
