@@ -14,7 +14,9 @@
   the correlation of fluidity and exponent, and the recovered values;
 - wall: a rigid retaining wall pushed over by viscoplastic backfill (examples/
   calibrate_wall_scene.toml), fitted to the wall top's displacement and the thrust, noise-free
-  and with 2 % noise; wall_variants: the same with L-BFGS and with linear shape functions.
+  and with 2 % noise; wall_variants: the same with L-BFGS and with linear shape functions;
+- pile: a pile pushed into viscoplastic sand at one and at two rates (examples/
+  calibrate_pile_scene.toml, axisymmetric), fitted to the driving force.
 A study, not a test: it prints markdown tables and writes each into its section of
 docs/calibration.md (between <!-- NAME:begin --> and <!-- NAME:end -->; --no-write to print only).
 """
@@ -230,8 +232,56 @@ def wall_variants(table):
         recovery_rows(table, label, fit, WALL_TRUTH)
 
 
+PILE_SCENE = ROOT / "examples" / "calibrate_pile_scene.toml"
+PILE_RATES = {"0.25 m/s": [0.0, -0.25], "0.5 m/s": [0.0, -0.5]}
+PILE_TRUTH = {"sand.friction_angle": 30.0, "sand.fluidity": 10.0, "sand.exponent": 1.0}
+PILE_START = {"sand.friction_angle": 39.0, "sand.fluidity": 7.0, "sand.exponent": 1.3}
+PILE_FIT = {"sand.friction_angle": (15.0, 45.0), "sand.fluidity": (0.1, 100.0), "sand.exponent": (0.5, 5.0)}
+
+
+def pile_experiments(sim, noise, seed=0, every=0.01, window=0.1):
+    """The pile's driving force (axial, whole ring) averaged over `window` seconds, every `every`
+    seconds, at each of PILE_RATES, plus Gaussian noise of `noise` x its peak."""
+    experiments = []
+    width = inverse.experiments.window_steps(window, sim.dt)
+    stride = max(1, int(round(every / sim.dt)))
+    for index, (name, velocity) in enumerate(PILE_RATES.items()):
+        params = jaxmpm.with_values(sim.params, {"bodies.pile.velocity": np.asarray(velocity)})
+        history = np.asarray(inverse.experiments.window_mean(sim.probes(params)["force"], width))
+        values = history[::stride][1:, [1]]
+        scale = noise * np.max(np.abs(values), axis=0)
+        noisy = values + scale * np.random.default_rng(seed + index).standard_normal(values.shape)
+        observations = inverse.Observations.from_arrays({"force": (sim.time[::stride][1:], noisy, [1])},
+                                                        sigma={"force": scale} if noise > 0 else None,
+                                                        window={"force": window})
+        experiments.append(inverse.Experiment(sim, observations, set={"bodies.pile.velocity": velocity}, name=name))
+    return experiments
+
+
+def pile(table):
+    table("### Pile twin: the driving force at two rates (axisymmetric, contact)")
+    table()
+    table(machine_line())
+    table()
+    sim = jaxmpm.Simulation(jaxmpm.load_scene(PILE_SCENE))
+    table(f"{sim.point_count} points, {sim.steps} steps; the force observed as its mean over 0.1 s, every 0.01 s.")
+    table()
+    recovery_header(table, ["φ [°]", "γ [1/s]", "N"])
+    correlations = {}
+    for label, noise, chosen in (("0.5 m/s alone, noise-free", 0.0, slice(1, 2)), ("both rates, noise-free", 0.0, slice(0, 2)),
+                                 ("0.5 m/s alone, 2 % noise", 0.02, slice(1, 2)), ("both rates, 2 % noise", 0.02, slice(0, 2))):
+        experiments = pile_experiments(sim, noise)[chosen]
+        fit = inverse.calibrate(experiments, fit=PILE_FIT, starts=[PILE_START], max_iterations=50, progress=False)
+        recovery_rows(table, label, fit, PILE_TRUTH)
+        gamma, exponent = fit.names.index("sand.fluidity"), fit.names.index("sand.exponent")
+        correlations[label] = fit.correlation[gamma, exponent]
+    table()
+    table("Correlation of fluidity and exponent: " +
+          ", ".join(f"{label} {value:+.3f}" for label, value in correlations.items()) + ".")
+
+
 STUDIES = {"heap_optimizers": heap_optimizers, "smoothness": smoothness, "heap_noise": heap_noise,
-           "rates": rate_study, "wall": wall, "wall_variants": wall_variants}
+           "rates": rate_study, "wall": wall, "wall_variants": wall_variants, "pile": pile}
 
 
 def main():
