@@ -102,6 +102,10 @@ def experiments_from(sim_or_experiments, observations) -> list[Experiment]:
         experiments.append(dataclasses.replace(
             item, name=name, observations=as_observations(item.observations, item.sigma, label), sigma=None))
     names = [e.name for e in experiments]
+    for name in names:
+        if not isinstance(name, str) or not name or "/" in name:
+            raise SceneError(f"experiments: the name {name!r} must be a non-empty string without '/' "
+                             "(it names a group of the fit's HDF5 file).")
     duplicate = next((n for n in names if names.count(n) > 1), None)
     if duplicate is not None:
         raise SceneError(f"experiments: the name {duplicate!r} is used twice.")
