@@ -329,7 +329,10 @@ class _Table:
     def get(self, name, kind, default=REQUIRED, choices=None):
         if name not in self.data:
             if default is REQUIRED:
-                raise SceneError(f"{self.key(name)} is missing: it is required.")
+                unknown = [key for key in self.data if key not in (getattr(self, "known", None) or ())]
+                typo = difflib.get_close_matches(name, unknown, n=1)
+                hint = f" (is {self.key(typo[0])!r} a misspelling of it?)" if typo else ""
+                raise SceneError(f"{self.key(name)} is missing: it is required{hint}.")
             return default
         self.used.add(name)
         value = convert(self.key(name), self.data[name], kind)

@@ -56,6 +56,8 @@ BAD_INPUTS = [
     ("float ppc", ("ppc = 2", "ppc = 2.5"), ["numerics.ppc", "2.5", "integer"]),
     ("bad choice", ('bottom = "fixed"', 'bottom = "glued"'), ["grid.boundaries.bottom", "'glued'"]),
     ("missing", ("duration = 0.01\n", ""), ["scene.duration", "missing"]),
+    ("misspelled required key", ("young = 1.0e6", "youngs = 1.0e6"),
+     ["materials.soil.young is missing", "is 'materials.soil.youngs' a misspelling of it?"]),
     ("body outside grid", ("[0.4, 0.2]", "[0.5, 0.2]"), ["bodies[0].region", "[0.5, 0.0]", "outside the grid"]),
     ("unknown material", ('material = "soil"', 'material = "sand"'), ["bodies[0].material", "'sand'"]),
     ("grid not whole cells", ("cell = 0.05", "cell = 0.07"), ["grid.size", "grid.cell = 0.07"]),
