@@ -255,7 +255,7 @@ def test_bad_experiments_are_clear_errors():
 def test_calibrate_command_with_two_experiments(tmp_path, capsys):
     from jaxmpm.cli import main
 
-    sim = coarse_rates()
+    sim = jaxmpm.Simulation(coarse_rates().scene.with_value("scene.duration", 0.15))
     (tmp_path / "scene.toml").write_text(sim.scene.to_toml())
     for name, velocity in rates.RATES.items():
         rates.rate_observations(sim, velocity, 0.0).to_csv(tmp_path / f"{name}.csv")
