@@ -44,6 +44,7 @@ import calibrate_heap as heap  # noqa: E402
 import calibrate_rates as rates  # noqa: E402
 import inverse  # noqa: E402
 import jaxmpm  # noqa: E402
+from contact_study import Table  # noqa: E402
 from throughput import machine_info, write_section  # noqa: E402
 
 WALL_SCENE = ROOT / "examples" / "calibrate_wall_scene.toml"
@@ -53,25 +54,18 @@ WALL_FIT = {"sand.friction_angle": (15.0, 45.0), "sand.fluidity": (0.1, 100.0), 
 WALL_OBSERVED = (("wall_top", [0, 1]), ("thrust", [0]))
 
 
-class Table:
-    """Markdown lines, printed as they come and kept for the docs section."""
-
-    def __init__(self):
-        self.lines = []
-
-    def __call__(self, line=""):
-        print(line, flush=True)
-        self.lines.append(line)
-
-    @property
-    def text(self):
-        return "\n".join(self.lines)
-
-
 def machine_line():
     info = machine_info()
     return (f"Measured {time.strftime('%Y-%m-%d')} on {info.get('cpu', 'this machine')} "
             f"({info.get('cores', '?')} cores), JAX {jax.__version__}, float64.")
+
+
+def section(table, title):
+    """A study's heading and the machine it ran on."""
+    table(f"### {title}")
+    table()
+    table(machine_line())
+    table()
 
 
 def recovery_rows(table, label, fit, truth, *, first=True):
@@ -93,10 +87,7 @@ def recovery_header(table, names):
 
 
 def heap_optimizers(table, cases=(("LM, bspline2", "lm", "bspline2"), ("LM, linear", "lm", "linear"))):
-    table("### Heap twin, noise-free, start 30 % away")
-    table()
-    table(machine_line())
-    table()
+    section(table, "Heap twin, noise-free, start 30 % away")
     recovery_header(table, ["φ [°]", "γ [1/s]", "N"])
     for label, optimizer, shape in cases:
         sim = heap.heap_simulation(shape)
@@ -115,10 +106,7 @@ def heap_lbfgs(table):
 
 
 def smoothness(table):
-    table("### How smooth is the heap's misfit? Forward-mode derivative against central secants")
-    table()
-    table(machine_line())
-    table()
+    section(table, "How smooth is the heap's misfit? Forward-mode derivative against central secants")
     table("| shape | parameter | 1e-6 | 1e-5 | 1e-4 | 1e-3 | 1e-2 |")
     table("|---|---|---|---|---|---|---|")
     for shape in ("linear", "gimp", "bspline2"):
@@ -146,10 +134,7 @@ def smoothness(table):
 
 
 def heap_noise(table, seeds=10, noise=0.02):
-    table(f"### Heap twin, {noise:.0%} noise, {seeds} seeds (LM, bspline2, start 30 % away)")
-    table()
-    table(machine_line())
-    table()
+    section(table, f"Heap twin, {noise:.0%} noise, {seeds} seeds (LM, bspline2, start 30 % away)")
     table("| seed | φ [°] | γ [1/s] | N | error / σ (φ, γ, N) | all inside 2σ | iterations | wall s |")
     table("|---|---|---|---|---|---|---|---|")
     sim = heap.heap_simulation("bspline2")
@@ -168,10 +153,7 @@ def heap_noise(table, seeds=10, noise=0.02):
 
 
 def rate_study(table, noise=0.02):
-    table(f"### One rate against two: the footing pushed into viscoplastic sand ({noise:.0%} noise)")
-    table()
-    table(machine_line())
-    table()
+    section(table, f"One rate against two: the footing pushed into viscoplastic sand ({noise:.0%} noise)")
     recovery_header(table, ["φ [°]", "γ [1/s]", "N"])
     sim = jaxmpm.Simulation(jaxmpm.load_scene(rates.SCENE))
     both = rates.experiments(sim, noise)
@@ -207,10 +189,7 @@ def wall_observations(sim, noise, seed=0, every=0.01):
 
 
 def wall(table):
-    table("### Retaining wall pushed over by viscoplastic backfill: wall-top displacement and thrust")
-    table()
-    table(machine_line())
-    table()
+    section(table, "Retaining wall pushed over by viscoplastic backfill: wall-top displacement and thrust")
     sim = jaxmpm.Simulation(jaxmpm.load_scene(WALL_SCENE))
     table(f"{sim.point_count} points, {sim.steps} steps.")
     table()
@@ -222,10 +201,7 @@ def wall(table):
 
 
 def wall_variants(table):
-    table("### Retaining-wall twin, noise-free: the other optimiser and shape function")
-    table()
-    table(machine_line())
-    table()
+    section(table, "Retaining-wall twin, noise-free: the other optimiser and shape function")
     recovery_header(table, ["φ [°]", "γ [1/s]", "N"])
     for label, optimizer, shape, iterations in (("LM, linear", "lm", "linear", 40),
                                                 ("L-BFGS, bspline2", "lbfgs", "bspline2", 20)):
@@ -266,10 +242,7 @@ def pile_experiments(sim, noise, seed=0, every=0.01, window=0.1):
 
 
 def pile(table):
-    table("### Pile twin: the driving force at two rates (axisymmetric, contact)")
-    table()
-    table(machine_line())
-    table()
+    section(table, "Pile twin: the driving force at two rates (axisymmetric, contact)")
     sim = jaxmpm.Simulation(jaxmpm.load_scene(PILE_SCENE))
     table(f"{sim.point_count} points, {sim.steps} steps; the force observed as its mean over 0.1 s, every 0.01 s.")
     table()
@@ -302,7 +275,7 @@ def main():
         table = Table()
         STUDIES[name](table)
         if not arguments.no_write:
-            write_section(f"<!-- {name}:begin -->", f"<!-- {name}:end -->", table.text, DOC)
+            write_section(f"<!-- {name}:begin -->", f"<!-- {name}:end -->", table.text(), DOC)
 
 
 if __name__ == "__main__":
