@@ -65,7 +65,7 @@ def block_on_slab(cell, theta_degrees=0.0, friction=0.0, drop_speed=0.0, start_g
         gravity=gravity,
         duration=duration,
         output_every=duration / 4,
-        numerics=Numerics(ppc=2, transfer="apic"),
+        numerics=Numerics(shape="linear", ppc=2, transfer="apic"),
         probes=(Probe("move", "body_displacement", body="block"), Probe("load", "contact_force", pair=("block", "slab"))),
     )
 

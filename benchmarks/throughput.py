@@ -3,6 +3,7 @@
     python benchmarks/throughput.py              # all cases; prints a table, updates docs/benchmarks.md
     python benchmarks/throughput.py --no-write   # print only
     python benchmarks/throughput.py --quick      # fewer repeats, 10k points only (a smoke run)
+    python benchmarks/throughput.py --reference  # jaxmpm against a Taichi kernel of its step (bench extra)
 
 The scene: a linear-elastic block (rho = 1000 kg/m^3, E = 1 MPa, nu = 0.3) resting on the fixed
 floor of a 1 m x 1 m box under gravity, linear shape functions, 2 x 2 points per cell, MUSL,
@@ -13,6 +14,11 @@ Each (size, dtype) case runs in its own subprocess, so that its peak resident me
 (getrusage maxrss) belongs to that case alone and float32 runs without JAX's 64-bit mode, as a
 float32 user would run it. This is a script, not a test: the figures are printed and written to
 docs/benchmarks.md between marker comments (the rest of that file is left alone).
+
+`--reference` times instead, in turn and each in its own process, jaxmpm's Drucker-Prager block
+(16,384 points, float32) with bspline2 + APIC and with linear + FLIP, and the Taichi kernel of the
+bspline2 + APIC step in benchmarks/reference_taichi.py, and writes its own section
+(REFERENCE_BEGIN / REFERENCE_END) with the ratio and the kernel's float64 agreement check.
 """
 
 from __future__ import annotations
@@ -55,9 +61,11 @@ GRADIENT_STEPS = 200                   # steps of the rollout differentiated for
 # --------------------------------------------------------------------------- the scene
 
 
-def block_scene(cells: int, dtype: str, steps: int, material: str = "elastic", shape: str = "linear"):
+def block_scene(cells: int, dtype: str, steps: int, material: str = "elastic", shape: str = "linear",
+                transfer: str = "flip"):
     """The benchmark scene: `steps` steps in outputs of STEPS_PER_CALL steps. material:
-    "elastic", or "drucker_prager" (the same block as sand, phi = 30 deg, which slumps)."""
+    "elastic", or "drucker_prager" (the same block as sand, phi = 30 deg, which slumps);
+    transfer: "flip" (FLIP 0.99) or "apic"."""
     from jaxmpm import Body, Boundaries, DruckerPrager, Grid, LinearElastic, Numerics, Probe, Rectangle, Scene
 
     cell = 1.0 / cells
@@ -71,7 +79,7 @@ def block_scene(cells: int, dtype: str, steps: int, material: str = "elastic", s
         duration=dt * steps,
         dt=dt,
         output_every=dt * min(steps, STEPS_PER_CALL),
-        numerics=Numerics(shape=shape, ppc=2, flip=0.99, update="musl", dtype=dtype),
+        numerics=Numerics(shape=shape, transfer=transfer, ppc=2, flip=0.99, update="musl", dtype=dtype),
         probes=(
             Probe("top", "displacement", at=(0.5, 0.5)),
             Probe("centre_of_mass", "body_displacement", body="block"),
@@ -99,6 +107,18 @@ def timed(function, *args):
     return time.perf_counter() - start
 
 
+def time_forward(sim, params, initial, repeats: int):
+    """(first call [s], `repeats` steady calls [s], their CPU seconds) of `sim._advance`
+    (STEPS_PER_CALL steps), every call from `initial`; the first call includes compilation."""
+    first = timed(sim._advance, params, initial, initial.particles.x)
+    CPU_SECONDS.clear()
+    times = [timed(sim._advance, params, initial, initial.particles.x) for _ in range(repeats)]
+    cpu_seconds = list(CPU_SECONDS)
+    final, _ = sim._advance(params, initial, initial.particles.x)
+    assert int(final.error_step) < 0, "the benchmark scene failed"
+    return first, times, cpu_seconds
+
+
 def run_case(points: int, dtype: str, material: str, shape: str, repeats: int) -> dict:
     import jax
 
@@ -119,12 +139,8 @@ def run_case(points: int, dtype: str, material: str, shape: str, repeats: int) -
     initial = sim.initial_state(params)
     jax.block_until_ready(initial)
     result["rss_start_mb"] = peak_rss_mb()
-    first = timed(sim._advance, params, initial, initial.particles.x)
-    CPU_SECONDS.clear()
-    times = [timed(sim._advance, params, initial, initial.particles.x) for _ in range(repeats)]
-    cpu_best = min(CPU_SECONDS)
-    final, _ = sim._advance(params, initial, initial.particles.x)
-    assert int(final.error_step) < 0, "the benchmark scene failed"
+    first, times, cpu_seconds = time_forward(sim, params, initial, repeats)
+    cpu_best = min(cpu_seconds)
     best, median = min(times), statistics.median(times)
     result.update(
         forward_first_s=first,
@@ -280,40 +296,202 @@ def write_doc(text: str):
     write_section(BEGIN, END, f"## Throughput, compile time, gradient cost, memory\n\n{text}\n\n{METHOD}")
 
 
+# --------------------------------------------------------------------------- the Taichi reference
+
+REFERENCE_BEGIN, REFERENCE_END = "<!-- reference:begin -->", "<!-- reference:end -->"
+REFERENCE_POINTS = 16_384
+REFERENCE_CASES = {  # name -> (code, numerics); all float32 Drucker-Prager, 16,384 points
+    "jaxmpm_apic": ("jaxmpm", "bspline2 + APIC"),
+    "taichi": ("Taichi reference, serial scatters", "bspline2 + APIC"),
+    "taichi_atomic": ("Taichi reference, atomic scatters", "bspline2 + APIC"),
+    "jaxmpm_flip": ("jaxmpm", "linear + FLIP 0.99"),
+}
+REFERENCE_ROUNDS = 3                 # each case once per round, in order, each in a fresh process
+
+
+def time_taichi(sim, params, initial, repeats: int, serial_scatter: bool):
+    """Like `time_forward`, for the Taichi kernel of benchmarks/reference_taichi.py: each call
+    runs STEPS_PER_CALL steps and ends with ti.sync(); the points are reloaded from `initial`
+    (untimed) before every call."""
+    import numpy as np
+    import taichi as ti
+
+    import reference_taichi
+
+    reference = reference_taichi.reference_for(sim, params, initial, ti.f32, serial_scatter=serial_scatter)
+    arrays = reference_taichi.particle_arrays(initial)
+
+    def call():
+        reference.load(arrays)
+        ti.sync()
+        start, cpu = time.perf_counter(), time.process_time()
+        reference.advance(STEPS_PER_CALL)
+        ti.sync()
+        return time.perf_counter() - start, time.process_time() - cpu
+
+    first = call()[0]
+    calls = [call() for _ in range(repeats)]
+    assert np.all(np.isfinite(reference.dump()["stress"])), "the Taichi run failed"
+    return first, [wall for wall, _ in calls], [cpu for _, cpu in calls]
+
+
+def run_reference_case(name: str, repeats: int) -> dict:
+    """One case of REFERENCE_CASES in this process: its first call and steady calls [s]."""
+    from jaxmpm import Simulation
+
+    shape, transfer = ("linear", "flip") if name == "jaxmpm_flip" else ("bspline2", "apic")
+    scene = block_scene(SIZES[REFERENCE_POINTS], "float32", STEPS_PER_CALL, "drucker_prager", shape, transfer)
+    sim = Simulation(scene)
+    assert sim.point_count == REFERENCE_POINTS, sim.point_count
+    params = sim.cast(sim.params)
+    initial = sim.initial_state(params)
+    if name.startswith("taichi"):
+        import taichi as ti
+
+        first, times, cpu = time_taichi(sim, params, initial, repeats, serial_scatter=name == "taichi")
+        version = "Taichi " + ".".join(map(str, ti.__version__))
+    else:
+        import jax
+
+        first, times, cpu = time_forward(sim, params, initial, repeats)
+        version = "JAX " + jax.__version__
+    return {"name": name, "first_s": first, "times_s": times, "cpu_s": cpu, "version": version}
+
+
+def run_reference(repeats: int, rounds: int) -> tuple[dict, dict]:
+    """({case: every steady call's time and CPU time [s] and each round's first call [s]}, the float64
+    agreement check of benchmarks/reference_taichi.py), each case and the check in its own process."""
+    runs = {name: {"times_s": [], "cpu_s": [], "first_s": []} for name in REFERENCE_CASES}
+    for round_number in range(rounds):
+        for name in REFERENCE_CASES:
+            print(f"reference round {round_number + 1}/{rounds}: {name} ...", file=sys.stderr, flush=True)
+            result = worker([sys.executable, __file__, "--reference-case", name, "--repeats", str(repeats)])
+            for key in ("times_s", "cpu_s"):
+                runs[name][key] += result[key]
+            runs[name]["first_s"].append(result["first_s"])
+            runs[name]["version"] = result["version"]
+    print("reference: float64 agreement check ...", file=sys.stderr, flush=True)
+    agreement = worker([sys.executable, str(Path(__file__).with_name("reference_taichi.py")), "--json"])
+    return runs, agreement
+
+
+def rate(seconds: float) -> float:
+    """M particle-steps/s of one call of STEPS_PER_CALL steps of REFERENCE_POINTS points."""
+    return REFERENCE_POINTS * STEPS_PER_CALL / seconds / 1e6
+
+
+def reference_table(runs: dict, agreement: dict, machine: dict, load_before: float) -> str:
+    apic, taichi = runs["jaxmpm_apic"]["times_s"], runs["taichi"]["times_s"]
+    lines = [
+        f"jaxmpm with bspline2 + APIC runs at {min(taichi) / min(apic):.2f} of the throughput of the Taichi "
+        f"reference kernel of the same step (best calls; {statistics.median(taichi) / statistics.median(apic):.2f} "
+        "for the medians); the target is at least 1.",
+        "",
+        f"Machine: {machine['cpu']}, {machine['cores']} cores, {machine['memory']}; Python {machine['python']}, "
+        f"{runs['jaxmpm_apic']['version']}, {runs['taichi']['version']}; jaxmpm {machine['commit']}; {machine['date']}; "
+        f"1-minute load average {load_before:.1f} before and {machine['load']:.1f} after the run (0 = idle machine).",
+        "",
+        "| code | numerics | forward M particle-steps/s, best / median | per CPU-second | "
+        "throughput of jaxmpm bspline2 + APIC / this, best / median | timed calls | first call (compiles) |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for name, (code, numerics) in REFERENCE_CASES.items():
+        times, cpu = runs[name]["times_s"], runs[name]["cpu_s"]
+        best, median = min(times), statistics.median(times)
+        ratio = "" if name.startswith("jaxmpm") else (
+            f"{best / min(apic):.2f} / {median / statistics.median(apic):.2f}")
+        lines.append(f"| {code} | {numerics} | {rate(best):.2f} / {rate(median):.2f} | {rate(min(cpu)):.2f} | "
+                     f"{ratio} | {len(times)} | {statistics.median(runs[name]['first_s']):.1f} s |")
+    checks = "; ".join(
+        f"{scatter} scatters: positions {agreement[scatter]['position_m']:.1g} m, stress "
+        f"{agreement[scatter]['stress']:.1g} of the largest |sigma|" for scatter in ("serial", "atomic"))
+    lines += ["", f"Same scheme, checked in float64: after {agreement['steps']} steps from the same initial state "
+              f"({agreement['yielded_points']:,} of {agreement['points']:,} points yielded, largest displacement "
+              f"{agreement['largest_displacement_m']:.2g} m), the largest differences from jaxmpm are, {checks} "
+              "(`python benchmarks/reference_taichi.py`)."]
+    return "\n".join(lines)
+
+
+REFERENCE_METHOD = f"""\
+Method. The Drucker-Prager block of the table above (16,384 points, 128^2 grid, float32) run by
+jaxmpm with numerics shape = "bspline2", transfer = "apic", update = "musl", and by
+`benchmarks/reference_taichi.py`, a hand-written Taichi kernel of the same step (CPU backend,
+2 threads, Taichi's default fast_math; every operation in jaxmpm's order, so that in float64
+the two end states agree to round-off, the check above). jaxmpm is timed as above: one
+`Simulation._advance` call of {STEPS_PER_CALL} steps, outputs ready, from the same initial state. The
+Taichi kernel is called {STEPS_PER_CALL} times (one step each) and then `ti.sync()`, after reloading
+the initial state untimed. Its particle-to-grid scatters (P2G and the MUSL re-map) run
+serially, without atomics, which on two cores beat the parallel loop with atomic adds; the
+"atomic scatters" row is that idiomatic parallel version. jaxmpm's calls also do work the kernel
+does not: the FLIP increment multiplied by 0, the finiteness and left-the-grid checks and the two
+probes of each step. Every case runs in its own process; {REFERENCE_ROUNDS} rounds run the cases
+in turn; best and median are over all timed calls of all rounds; the first call of each process
+(median over the rounds: jaxmpm compiles in it, Taichi compiles or loads its offline kernel
+cache) is not among them.
+Run with `pip install -e .[bench]` and `python benchmarks/throughput.py --reference` (about
+3 minutes)."""
+
+
+def write_reference_doc(text: str):
+    write_section(REFERENCE_BEGIN, REFERENCE_END,
+                  f"## Reference: a Taichi kernel of the same step\n\n{text}\n\n{REFERENCE_METHOD}")
+
+
+def worker(command: list[str], environment: dict | None = None) -> dict:
+    """Run a worker subprocess; its JSON result (the last line of its stdout)."""
+    done = subprocess.run(command, capture_output=True, text=True, env=environment)
+    if done.returncode != 0:
+        sys.stderr.write(done.stderr)
+        raise SystemExit(f"{' '.join(command[1:])} failed")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--no-write", action="store_true", help="print the table only")
-    parser.add_argument("--quick", action="store_true", help="10k points, fewer repeats")
+    parser.add_argument("--quick", action="store_true", help="10k points, fewer repeats (with --reference: one round)")
     parser.add_argument("--repeats", type=int, default=None, help="forward repeats per case")
+    parser.add_argument("--reference", action="store_true",
+                        help="only the Taichi reference comparison (needs the bench extra)")
     parser.add_argument("--case", nargs=4, metavar=("POINTS", "DTYPE", "MATERIAL", "SHAPE"), help=argparse.SUPPRESS)
+    parser.add_argument("--reference-case", choices=REFERENCE_CASES, help=argparse.SUPPRESS)
     args = parser.parse_args()
-    repeats = args.repeats or (3 if args.quick else 7)
+    repeats = args.repeats or (3 if args.quick else 5 if args.reference else 7)
 
     if args.case:                       # worker: one case, JSON on the last line of stdout
         print(json.dumps(run_case(int(args.case[0]), args.case[1], args.case[2], args.case[3], repeats)))
         return
+    if args.reference_case:             # worker: one reference case
+        print(json.dumps(run_reference_case(args.reference_case, repeats)))
+        return
 
-    cases = [case for case in CASES if case[0] == 10_000 and not case[4]] if args.quick else CASES
-    results, start = [], time.perf_counter()
+    start = time.perf_counter()
     load_before = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    if args.reference:
+        runs, agreement = run_reference(repeats, 1 if args.quick else REFERENCE_ROUNDS)
+        text, write = reference_table(runs, agreement, machine_info(), load_before), write_reference_doc
+    else:
+        text, write = throughput_table(repeats, args.quick, load_before), write_doc
+    print(text)
+    print(f"\n(total {time.perf_counter() - start:.0f} s)", file=sys.stderr)
+    if not args.no_write:
+        write(text)
+        print(f"wrote {DOC.relative_to(ROOT)}", file=sys.stderr)
+
+
+def throughput_table(repeats: int, quick: bool, load_before: float) -> str:
+    """Run CASES (the 10k ones with `quick`), each in its own process; the table."""
+    cases = [case for case in CASES if case[0] == 10_000 and not case[4]] if quick else CASES
+    results = []
     for points, dtype, material, shape, flags in cases:
         print(f"case {points:,} points {dtype} {material} {shape} {flags} ...", file=sys.stderr, flush=True)
         command = [sys.executable, __file__, "--case", str(points), dtype, material, shape, "--repeats", str(repeats)]
         environment = dict(os.environ)
         environment["XLA_FLAGS"] = " ".join(filter(None, [environment.get("XLA_FLAGS", ""), flags]))
-        done = subprocess.run(command, capture_output=True, text=True, env=environment)
-        if done.returncode != 0:
-            sys.stderr.write(done.stderr)
-            raise SystemExit(f"case {points} {dtype} {material} {shape} {flags} failed")
-        result = json.loads(done.stdout.strip().splitlines()[-1])
+        result = worker(command, environment)
         result["xla_flags"] = flags
         results.append(result)
-    text = table(results, machine_info(), load_before)
-    print(text)
-    print(f"\n(total {time.perf_counter() - start:.0f} s)", file=sys.stderr)
-    if not args.no_write:
-        write_doc(text)
-        print(f"wrote {DOC.relative_to(ROOT)}", file=sys.stderr)
+    return table(results, machine_info(), load_before)
 
 
 if __name__ == "__main__":

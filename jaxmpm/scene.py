@@ -60,21 +60,53 @@ class Grid:
         return tuple(int(round(length / self.cell)) for length in self.size)
 
 
+# Discretisation presets (docs/speed_accuracy.md measures each). Keys a scene gives explicitly
+# override its preset's; damping is a physical choice (quasi-static settling), never preset.
+PRESETS = {
+    "fast": {"shape": "linear", "transfer": "flip", "flip": 0.99, "ppc": 2, "dtype": "float32", "update": "musl"},
+    "balanced": {"shape": "bspline2", "transfer": "apic", "flip": 0.99, "ppc": 2, "dtype": "float64", "update": "musl"},
+    "accurate": {"shape": "bspline2", "transfer": "apic", "flip": 0.99, "ppc": 3, "dtype": "float64", "update": "musl"},
+}
+DEFAULT_PRESET = "balanced"
+
+
 @dataclasses.dataclass(frozen=True)
 class Numerics:
     """Discretisation choices; each is static (changing one recompiles).
 
-    update: "musl" (default: strain rate from velocities re-mapped after the particle update,
-    which keeps nodes with tiny mass from polluting stresses) or "usl".
+    preset: "fast" | "balanced" (the default) | "accurate" fills every choice left as None
+    (`PRESETS`); a value given explicitly overrides the preset's. update: "musl" (strain rate
+    from velocities re-mapped after the particle update, which keeps nodes with tiny mass from
+    polluting stresses) or "usl".
     """
 
-    shape: str = "linear"
-    transfer: str = "flip"
-    flip: float = 0.99
-    ppc: int = 2
-    dtype: str = "float64"
+    preset: str = DEFAULT_PRESET
+    shape: str | None = None
+    transfer: str | None = None
+    flip: float | None = None
+    ppc: int | None = None
+    dtype: str | None = None
     damping: float = 0.0
-    update: str = "musl"
+    update: str | None = None
+    # The values the preset filled in (not given by the user): `to_dict` leaves them out, and
+    # `dataclasses.replace(numerics, preset=...)` fills them again from the new preset.
+    filled: dict | None = dataclasses.field(default=None, compare=False, repr=False)
+
+    def __post_init__(self):
+        if self.preset not in PRESETS:
+            raise SceneError(f"numerics.preset = {self.preset!r} is not one of {', '.join(map(repr, PRESETS))}.")
+        previous, filled = self.filled or {}, {}
+        for name, value in PRESETS[self.preset].items():
+            given = getattr(self, name)
+            if given is None or (name in previous and given == previous[name]):
+                object.__setattr__(self, name, value)
+                filled[name] = value
+        object.__setattr__(self, "filled", filled)
+
+    def given(self) -> dict:
+        """The choices this Numerics states itself: its preset, damping and every override."""
+        return {field.name: getattr(self, field.name) for field in dataclasses.fields(self)
+                if field.name != "filled" and field.name not in self.filled}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -543,16 +575,16 @@ def scene_from_dict(data) -> Scene:
     grid_table.finish()
 
     options = root.table("numerics", {})
-    options.known = [f.name for f in dataclasses.fields(Numerics)]
-    default = Numerics()
+    options.known = [f.name for f in dataclasses.fields(Numerics) if f.name != "filled"]
     numerics = Numerics(
-        shape=options.get("shape", "str", default.shape, choices=NUMERICS_CHOICES["shape"]),
-        transfer=options.get("transfer", "str", default.transfer, choices=NUMERICS_CHOICES["transfer"]),
-        flip=options.get("flip", "float", default.flip),
-        ppc=options.get("ppc", "int", default.ppc),
-        dtype=options.get("dtype", "str", default.dtype, choices=NUMERICS_CHOICES["dtype"]),
-        damping=options.get("damping", "float", default.damping),
-        update=options.get("update", "str", default.update, choices=NUMERICS_CHOICES["update"]),
+        preset=options.get("preset", "str", DEFAULT_PRESET, choices=tuple(PRESETS)),
+        shape=options.get("shape", "str", None, choices=NUMERICS_CHOICES["shape"]),
+        transfer=options.get("transfer", "str", None, choices=NUMERICS_CHOICES["transfer"]),
+        flip=options.get("flip", "float", None),
+        ppc=options.get("ppc", "int", None),
+        dtype=options.get("dtype", "str", None, choices=NUMERICS_CHOICES["dtype"]),
+        damping=options.get("damping", "float", 0.0),
+        update=options.get("update", "str", None, choices=NUMERICS_CHOICES["update"]),
     )
     options.finish()
 
@@ -638,7 +670,7 @@ def scene_to_dict(scene: Scene) -> dict:
     data = {
         "scene": head,
         "grid": grid,
-        "numerics": dataclasses.asdict(scene.numerics),
+        "numerics": scene.numerics.given(),
         "materials": materials,
         "bodies": bodies,
     }

@@ -13,6 +13,8 @@ cell = 0.05
 boundaries = { left = "slip", right = "slip", bottom = "fixed", top = "free" }
 
 [numerics]
+shape = "linear"
+transfer = "flip"
 ppc = 2
 damping = 0.0
 

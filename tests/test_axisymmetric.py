@@ -281,7 +281,7 @@ def small_pile():
         contacts=(Contact(("sand", "pile"), 0.3),),
         duration=0.03,
         output_every=0.03,
-        numerics=Numerics(ppc=2, transfer="apic"),
+        numerics=Numerics(shape="linear", ppc=2, transfer="apic"),
         probes=(Probe("head", "reaction", body="pile"),),
     )
 

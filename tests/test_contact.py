@@ -166,7 +166,7 @@ def test_discs_collide_without_interpenetration_and_separate():
         duration=0.1,
         output_every=0.005,
         snapshot_fields=("x", "v", "mass"),
-        numerics=Numerics(ppc=2, transfer="apic"),
+        numerics=Numerics(shape="linear", ppc=2, transfer="apic"),
         probes=(Probe("squeeze", "contact_force", pair=("left", "right")),),
     )
     result = Simulation(scene).run(progress=False)
@@ -227,7 +227,7 @@ def test_rigid_body_comes_to_rest_on_sand():
         contacts=(Contact(("sand", "footing"), 0.5),),
         duration=0.15,
         output_every=0.05,
-        numerics=Numerics(ppc=2, transfer="apic", damping=0.2),
+        numerics=Numerics(shape="linear", ppc=2, transfer="apic", damping=0.2),
         probes=(
             Probe("bearing", "contact_force", pair=("sand", "footing")),
             Probe("settlement", "body_displacement", body="footing"),
@@ -271,7 +271,7 @@ def active_wall(cell=0.025, friction=0.0, duration=0.3, speed=0.005, friction_an
         contacts=(Contact(("backfill", "wall"), friction),),
         duration=duration,
         output_every=output_every,
-        numerics=Numerics(ppc=2, transfer="apic"),
+        numerics=Numerics(shape="linear", ppc=2, transfer="apic"),
         probes=(Probe("thrust", "contact_force", pair=("backfill", "wall")), Probe("push", "reaction", body="wall")),
     )
 

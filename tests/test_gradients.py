@@ -22,7 +22,7 @@ def shared_simulation(update="musl", shape="linear"):
 
 
 def small_simulation(update="musl", shape="linear"):
-    scene = jaxmpm.Scene.from_toml(BLOCK.replace("[numerics]", f'[numerics]\nupdate = "{update}"\nshape = "{shape}"'))
+    scene = jaxmpm.Scene.from_toml(BLOCK.replace('shape = "linear"', f'update = "{update}"\nshape = "{shape}"'))
     return jaxmpm.Simulation(scene)
 
 

@@ -34,6 +34,7 @@ cell = 0.05
 boundaries = { left = "slip", right = "slip", bottom = "fixed", top = "free" }
 
 [numerics]
+shape = "linear"
 transfer = "apic"
 ppc = 2
 

@@ -56,6 +56,8 @@ cell = 0.025
 boundaries = { left = "slip", right = "free", bottom = "fixed", top = "free" }
 
 [numerics]
+shape = "linear"
+transfer = "flip"
 ppc = 2
 damping = 0.0
 

@@ -68,7 +68,7 @@ BAD_INPUTS = [
      ["grid.boundaries.left = 'free'", "axis"]),
     ("radial gravity", ('[scene]\n', '[scene]\ngeometry = "axisymmetric"\n', 'gravity = [0.0, -9.81]', 'gravity = [1.0, -9.81]'),
      ["scene.gravity = [1.0, -9.81]", "axial"]),
-    ("unknown shape", ('[numerics]', '[numerics]\nshape = "bspline3"'), ["numerics.shape", "'bspline3'", "'gimp'"]),
+    ("unknown shape", ('shape = "linear"', 'shape = "bspline3"'), ["numerics.shape", "'bspline3'", "'gimp'"]),
     ("bad TOML", ("[grid]", "[grid"), ["not valid TOML"]),
     ("unknown probe body", ('body = "block"', 'body = "wall"'), ["probes[1].body", "'wall'"]),
     ("reserved name", ('name = "block"\nmaterial', 'name = "time"\nmaterial'), ["bodies[0].name = 'time'"]),
