@@ -329,13 +329,14 @@ def grid_to_particles(particles, stencil, velocity_old, velocity_new, field, tra
     APIC: v_p <- sum N_I v_I (its C_p is set with the velocity gradient, in `make_step`).
     """
     support = stencil.weights.shape[1]
-    if transfer == "apic":
-        flip = 0.0
-    nodal = jnp.concatenate([velocity_new, velocity_new - velocity_old], axis=-1)
+    blend = transfer == "flip" and flip > 0.0     # static: APIC and pure PIC gather v_I only
+    nodal = jnp.concatenate([velocity_new, velocity_new - velocity_old], axis=-1) if blend else velocity_new
     gathered = gather_from_nodes(layout, stencil.base, nodal, support, field)
     at_points = sum_over_stencil(stencil.weights[..., None] * gathered)
-    grid_velocity, increment = at_points[:, :2], at_points[:, 2:]
-    velocity = flip * (particles.v + increment) + (1.0 - flip) * grid_velocity
+    grid_velocity = at_points[:, :2]
+    velocity = grid_velocity
+    if blend:
+        velocity = flip * (particles.v + at_points[:, 2:]) + (1.0 - flip) * grid_velocity
     return particles.replace(x=particles.x + dt * grid_velocity, v=velocity)
 
 

@@ -17,9 +17,10 @@ increment dl the trial state (p*, q*) moves to
 - Perzyna, backward Euler: dl = gamma dt Phi(p, q). Writing dl = x f*/H with x in [0, 1]
   turns it into one monotone scalar equation, solved in log form
       log x + log(f*/H) - log(gamma dt) - N [log(1 - x) + log(f* / (m p(x)))] = 0
-  by a fixed number of bisection steps (stable for every gamma dt and N: x -> 1 is the
-  plastic limit, x -> 0 the elastic one); its gradient comes from the implicit function
-  theorem, not from the bisection.
+  for t = log(x / (1 - x)), where it is nearly linear (slope 1 as x -> 0, N as x -> 1), by a
+  fixed number of Newton steps kept inside a bracket (stable for every gamma dt and N: x -> 1
+  is the plastic limit, x -> 0 the elastic one); its gradient comes from the implicit
+  function theorem, not from the iteration.
 - apex: sand carries no tension. If the return along the flow direction cannot reach the cone
   (q* K m_psi + 3 G p* <= 0, i.e. p* <= 0 for psi = 0), the stress returns to the apex,
   sigma = 0.
@@ -44,7 +45,8 @@ CONES = {
     "extension": lambda s: 6.0 * s / (3.0 + s),            # triaxial extension corners
     "plane_strain": lambda s: jnp.sqrt(3.0) * s,           # plane strain, zero dilatancy
 }
-BISECTION_STEPS = {4: 26, 8: 54}   # by float size: 2^-steps < eps, so the error in dl f* is round-off
+NEWTON_STEPS = 8   # 6 reach round-off (|x - x_bisection| < 1e-14) over E, phi, psi, p, f*, gamma dt, N
+                   # swept over 6-20 decades (tests/test_drucker_prager.py); 2 more for margin
 TINY = 1e-30
 
 
@@ -55,36 +57,55 @@ def cone_slope(cone, angle_degrees):
 
 def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent):
     """x in [0, 1] with dl = x f*/H solving the backward-Euler Perzyna equation (see module).
-
     trial_overstress f* > 0; hardening H; pressure_trial p* > 0; dilation_rate K m_psi;
-    m the cone slope; rate = gamma dt; exponent N. Value from bisection, gradient from the
-    implicit function theorem.
+    m the cone slope; rate = gamma dt; exponent N. Value from bracketed Newton steps on
+    t = logit(x), gradient from the implicit function theorem.
     """
     largest = trial_overstress / hardening
     constant = jnp.log(largest) - jnp.log(rate) - exponent * jnp.log(trial_overstress)
+    growth = dilation_rate * largest            # p(x) = p* + growth x
 
-    def residual(x):
-        pressure = pressure_trial + dilation_rate * largest * x
-        return jnp.log(x) - exponent * (jnp.log1p(-x) - jnp.log(jnp.maximum(m * pressure, TINY))) + constant
+    def residual(t):
+        # log x - N log(1 - x) + N log(m p(x)) + constant, with x = sigmoid(t)
+        pressure = pressure_trial + growth * jax.nn.sigmoid(t)
+        return (jax.nn.log_sigmoid(t) - exponent * jax.nn.log_sigmoid(-t)
+                + exponent * jnp.log(jnp.maximum(m * pressure, TINY)) + constant)
 
-    def bisect(bounds, _):
-        low, high = bounds
-        middle = 0.5 * (low + high)
-        above = residual(middle) > 0.0
-        return (jnp.where(above, low, middle), jnp.where(above, middle, high)), None
-
-    dtype = jnp.result_type(trial_overstress)
-    steps = BISECTION_STEPS[jnp.dtype(dtype).itemsize]
-    zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
-    (low, high), _ = jax.lax.scan(bisect, (zero, one), None, length=steps)
-    # Keep the root strictly inside (0, 1): when 1 - x is below round-off (gamma dt -> inf,
-    # phi -> 0) the midpoint would round to 1 and log1p(-1) = -inf would poison the gradient.
-    info = jnp.finfo(dtype)
-    root = jax.lax.stop_gradient(jnp.clip(0.5 * (low + high), info.tiny, 1.0 - info.epsneg))
-    # Implicit function theorem: dx/dtheta = -(dR/dtheta) / (dR/dx) at the root.
+    root = jax.lax.stop_gradient(bracketed_newton(residual, *perzyna_bracket(
+        residual, constant, exponent, m, pressure_trial, growth)))
+    # Implicit function theorem: dt/dtheta = -(dR/dtheta) / (dR/dt) at the root.
     slope = jax.lax.stop_gradient(jax.grad(residual)(root))
     value = residual(root)
-    return root - (value - jax.lax.stop_gradient(value)) / slope
+    return jax.nn.sigmoid(root - (value - jax.lax.stop_gradient(value)) / slope)
+
+
+def perzyna_bracket(residual, constant, exponent, m, pressure_trial, growth):
+    """(low, high, start) around the root of the Perzyna residual R(t). With
+    R_0 = N log(m p*) + c and R_1 = N log(m (p* + growth)) + c, and log 2 bounding the
+    log-sigmoid terms: a root t < 0 (R(0) > 0) lies in [-(R_1 + N log 2), min(0, log 2 - R_0)],
+    a root t >= 0 in [max(0, -R_1 / N - log 2), max(0, (log 2 - R_0) / N)]. The start is
+    the asymptote of its side (R ~ t + R_0 for t -> -inf, R ~ N t + R_1 for t -> inf)."""
+    log2 = jnp.log(2.0)
+    at_least = exponent * jnp.log(jnp.maximum(m * pressure_trial, TINY)) + constant
+    at_most = exponent * jnp.log(jnp.maximum(m * (pressure_trial + growth), TINY)) + constant
+    negative = residual(jnp.zeros_like(constant)) > 0.0
+    low = jnp.where(negative, -(at_most + exponent * log2), jnp.maximum(0.0, -at_most / exponent - log2))
+    high = jnp.where(negative, jnp.minimum(0.0, log2 - at_least), jnp.maximum(0.0, (log2 - at_least) / exponent))
+    start = jnp.clip(jnp.where(negative, -at_least, -at_most / exponent), low, high)
+    return low, high, start
+
+
+def bracketed_newton(residual, low, high, start):
+    """NEWTON_STEPS Newton steps on an increasing R(t) from `start`, a step that leaves the
+    bracket [low, high] (shrunk at every step) replaced by the bracket's midpoint."""
+    t = start
+    for _ in range(NEWTON_STEPS):
+        value, slope = jax.jvp(residual, (t,), (jnp.ones_like(t),))
+        low = jnp.where(value < 0.0, t, low)
+        high = jnp.where(value > 0.0, t, high)
+        step = t - value / slope
+        t = jnp.where((step >= low) & (step <= high), step, 0.5 * (low + high))
+    return t
 
 
 @dataclasses.dataclass(frozen=True)
