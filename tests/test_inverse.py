@@ -83,7 +83,9 @@ WRONG = {"sand.friction_angle": 30.0, "sand.fluidity": 3.5, "sand.exponent": 2.5
 
 
 @functools.lru_cache
+@functools.cache
 def twin_simulation():
+    """One Simulation for every test: its compiled rollout and calibration problems are shared."""
     return jaxmpm.Simulation(jaxmpm.Scene.from_toml(TWIN))
 
 
@@ -137,16 +139,18 @@ def test_twin_recovers_the_truth_from_noise_free_data(tmp_path):
 
 
 def test_multistart_batch_matches_separate_runs():
-    # Starts run together under jax.vmap must follow exactly the paths they follow alone.
+    # Starts run together under jax.vmap must follow exactly the paths they follow alone:
+    # each start of [WRONG, other] as in a batch of copies of itself (one compiled batch size).
     sim = twin_simulation()
     observations = twin_observations(noise=1e-5)
     other = {"sand.friction_angle": 20.0, "sand.fluidity": 8.0, "sand.exponent": 1.5}
     options = dict(optimizer="adam", learning_rate=0.05, max_iterations=4, progress=False)
     together = inverse.calibrate(sim, observations, FIT, starts=[WRONG, other], **options)
     for index, start in enumerate([WRONG, other]):
-        alone = inverse.calibrate(sim, observations, FIT, starts=[start], **options)
+        alone = inverse.calibrate(sim, observations, FIT, starts=[start, start], **options)
         np.testing.assert_allclose(together.history["loss"][:, index], alone.history["loss"][:, 0], rtol=1e-10)
         np.testing.assert_allclose(together.final_values[index], alone.final_values[0], rtol=1e-10)
+    assert not np.allclose(together.final_values[0], together.final_values[1])
     assert np.all(np.diff(together.history["loss"], axis=0) < 0.0)   # Adam descends from both
 
 
