@@ -23,6 +23,23 @@ class Checkpointing:
     """
 
     segment: int | None = None
+    step: str = "recompute"
+
+    def step_checkpoint(self, advance):
+        """The per-step wrapper: "recompute" (jax.checkpoint, nothing saved), "store" (none:
+        every residual of the segment's steps is kept), "names:a+b" (save those
+        checkpoint_name'd values), "dots" (dots_with_no_batch_dims_saveable)."""
+        if self.step == "store":
+            return advance
+        if self.step == "recompute":
+            return jax.checkpoint(advance, prevent_cse=False)
+        if self.step.startswith("names:"):
+            names = self.step[len("names:"):].split("+")
+            policy = jax.checkpoint_policies.save_only_these_names(*names)
+            return jax.checkpoint(advance, prevent_cse=False, policy=policy)
+        if self.step == "dots":
+            return jax.checkpoint(advance, prevent_cse=False, policy=jax.checkpoint_policies.dots_with_no_batch_dims_saveable)
+        raise ValueError(f"unknown step checkpointing {self.step!r}")
 
     def segment_length(self, steps):
         if self.segment is not None:
@@ -39,7 +56,7 @@ def checkpointed_rollout(advance, state, steps, checkpointing):
     """Like scan_steps over `steps`, in checkpointed segments (memory ~ sqrt(steps))."""
     segment = checkpointing.segment_length(steps)
     segments, remainder = divmod(steps, segment)
-    advance = jax.checkpoint(advance, prevent_cse=False)
+    advance = checkpointing.step_checkpoint(advance)
 
     def run_segment(carry):
         return scan_steps(advance, carry, segment)
@@ -50,3 +67,11 @@ def checkpointed_rollout(advance, state, steps, checkpointing):
         state, tail = scan_steps(advance, state, remainder)
         outputs = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), outputs, tail)
     return state, outputs
+
+
+def parse_checkpointing(text):
+    """Checkpointing from "default" or "seg=N;step=..." (benchmarks)."""
+    if text == "default":
+        return Checkpointing()
+    fields = dict(part.split("=", 1) for part in text.split(";"))
+    return Checkpointing(segment=int(fields["seg"]) if "seg" in fields else None, step=fields.get("step", "recompute"))

@@ -20,6 +20,7 @@ import dataclasses
 from typing import ClassVar, NamedTuple
 
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 
 
 class Stencil(NamedTuple):
@@ -107,4 +108,4 @@ def stencil(shape, local, nodes, cell):
     gradients = jnp.stack(
         [slope[:, :, None, 0] * along[:, None, :, 1], along[:, :, None, 0] * slope[:, None, :, 1]], axis=-1
     )
-    return Stencil(base, weights, gradients)
+    return Stencil(checkpoint_name(base, "stencil"), checkpoint_name(weights, "stencil"), checkpoint_name(gradients, "stencil"))
