@@ -56,6 +56,7 @@ def main():
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--per-step", action="store_true")
+    parser.add_argument("--skip-rollout", action="store_true")
     parser.add_argument("--jit-options", default="", help="'noynn' to compile without YNNPACK fusions")
     args = parser.parse_args()
     if args.dtype == "float64":
@@ -73,7 +74,7 @@ def main():
     print(f"# {args.points} {args.dtype} {args.material} {args.shape} steps={args.steps} cells={cells} "
           f"options={args.jit_options or 'default'} load={os.getloadavg()[0]:.2f}", flush=True)
     compiled = {}
-    for name in variants:
+    for name in ([] if args.skip_rollout else variants):
         sim = jaxmpm.Simulation(scene, jaxmpm.rollout.parse_checkpointing(name))
 
         def loss(young, sim=sim):
@@ -90,13 +91,13 @@ def main():
         compiled[name] = (forward, gradient, young, memory.temp_size_in_bytes / 2**20, compile_s, sim)
         print(f"  {name}: points={sim.point_count} compile grad {compile_s:.1f} s, temp {memory.temp_size_in_bytes / 2**20:.1f} MB, "
               f"loss {float(forward(young)):.12e} grad {float(gradient(young)):.12e}", flush=True)
-    results = {name: {"loss": [], "grad": []} for name in variants}
+    results = {name: {"loss": [], "grad": []} for name in compiled}
     for _ in range(args.rounds):
-        for name in variants:
+        for name in compiled:
             forward, gradient, young, *_ = compiled[name]
             results[name]["loss"].append(best_median(forward, young, repeats=args.repeats))
             results[name]["grad"].append(best_median(gradient, young, repeats=max(2, args.repeats // 2 + 1)))
-    for name in variants:
+    for name in compiled:
         loss_best = min(b for b, _ in results[name]["loss"])
         grad_best = min(b for b, _ in results[name]["grad"])
         loss_med = statistics.median(m for _, m in results[name]["loss"])
@@ -107,7 +108,7 @@ def main():
               f"temp {temp:7.1f} MB", flush=True)
 
     if args.per_step:
-        sim = compiled[variants[0]][5]
+        sim = jaxmpm.Simulation(scene)
         params = sim.cast(sim.params)
         initial = sim.initial_state(params)
         advance_of = lambda p: sim._advance_and_observe(p, initial.particles.x)   # noqa: E731

@@ -5,6 +5,7 @@ s = sigma + p I, q = sqrt(3/2 s:s). Every square root here is safe: value and gr
 finite at zero.
 """
 
+import jax
 import jax.numpy as jnp
 
 
@@ -14,10 +15,46 @@ def safe_sqrt(x):
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
 
 
+def entries(tensor):
+    """The 9 entries of (..., 3, 3) tensors, row-major, as a list of (...,) arrays, read with ONE
+    split: reverse mode turns it into one concatenation, where 9 index reads would become 9 pads
+    of the whole array (slow in XLA:CPU's backward pass)."""
+    return list(_entries(tensor))
+
+
+@jax.custom_vjp
+def _entries(tensor):
+    flat = tensor.reshape(tensor.shape[:-2] + (9,))
+    return tuple(part.reshape(tensor.shape[:-2]) for part in jnp.split(flat, 9, axis=-1))
+
+
+def _entries_forward(tensor):
+    return _entries(tensor), None
+
+
+def _entries_backward(_, cotangents):
+    # The barrier keeps XLA from fusing the 9 cotangents' computations into the stack, where
+    # their shared parts would be evaluated once per entry.
+    cotangents = jax.lax.optimization_barrier(cotangents)
+    return (jnp.stack(cotangents, axis=-1).reshape(cotangents[0].shape + (3, 3)),)
+
+
+_entries.defvjp(_entries_forward, _entries_backward)
+
+
+def from_entries(values):
+    """(..., 3, 3) tensors from 9 row-major entries (...,) (one stack; its reverse mode is one split)."""
+    return jnp.stack(values, axis=-1).reshape(values[0].shape + (3, 3))
+
+
+DIAGONAL = (0, 4, 8)
+
+
 def trace(tensor):
     """t_00 + t_11 + t_22 of (..., 3, 3) tensors, written as two adds: jnp.trace is a masked
     reduction, which XLA:CPU sends to a slow library (YNNPACK) kernel."""
-    return tensor[..., 0, 0] + tensor[..., 1, 1] + tensor[..., 2, 2]
+    e = entries(tensor)
+    return e[0] + e[4] + e[8]
 
 
 def pressure(stress):
@@ -25,17 +62,25 @@ def pressure(stress):
     return -trace(stress) / 3.0
 
 
+def deviator_entries(e):
+    """Entries of the deviatoric part of a tensor given by its 9 entries."""
+    mean = (e[0] + e[4] + e[8]) / 3.0
+    return [value - mean if index in DIAGONAL else value for index, value in enumerate(e)]
+
+
 def deviator(tensor):
     """Deviatoric part t - tr(t)/3 I of a (..., 3, 3) tensor."""
-    mean = trace(tensor) / 3.0
-    return tensor - mean[..., None, None] * jnp.eye(3, dtype=tensor.dtype)
+    return from_entries(deviator_entries(entries(tensor)))
+
+
+def von_mises_of_deviator(s):
+    """q = sqrt(3/2 s:s) from the 9 entries of a deviator, finite gradient at s = 0."""
+    return safe_sqrt(1.5 * sum(value * value for value in s))   # not a reduce
 
 
 def von_mises(stress):
     """Equivalent deviatoric stress q = sqrt(3/2 s:s), finite gradient at s = 0."""
-    s = deviator(stress)
-    squares = sum(s[..., i, j] * s[..., i, j] for i in range(3) for j in range(3))   # not a reduce
-    return safe_sqrt(1.5 * squares)
+    return von_mises_of_deviator(deviator_entries(entries(stress)))
 
 
 def symmetric(tensor):
@@ -60,11 +105,34 @@ def hughes_winget_rotation(velocity_gradient, dt):
     )
 
 
+def in_plane_rotation(velocity_gradient, dt):
+    """(cos, sin) of the Hughes-Winget incremental rotation about z (see
+    hughes_winget_rotation) of (..., 3, 3) velocity gradients."""
+    e = entries(velocity_gradient)
+    a = 0.25 * dt * (e[3] - e[1])
+    scale = 1.0 / (1.0 + a * a)
+    return (1.0 - a * a) * scale, 2.0 * a * scale
+
+
+def rotate_entries(e, cos, sin):
+    """Entries of Q t Q^T for Q the rotation by (cos, sin) about z, t given by its 9 entries."""
+    rows = [
+        [cos * e[0] - sin * e[3], cos * e[1] - sin * e[4], cos * e[2] - sin * e[5]],
+        [sin * e[0] + cos * e[3], sin * e[1] + cos * e[4], sin * e[2] + cos * e[5]],
+        [e[6], e[7], e[8]],
+    ]
+    return [value for row in (
+        [cos * r[0] - sin * r[1], sin * r[0] + cos * r[1], r[2]] for r in rows
+    ) for value in row]
+
+
 def jaumann_rotate(stress, velocity_gradient, dt):
     """Carry sigma through the step's rigid rotation: Q sigma Q^T (objective Jaumann update).
 
     Integrates the spin part of the Jaumann rate of the paper,
     sigma_dot = sigma_jaumann + sigma omega + (sigma omega)^T, omega_ij = (v_j,i - v_i,j)/2.
+    Q is a rotation about z (hughes_winget_rotation), written out on the entries: reverse mode
+    of the matrix products was slow on XLA:CPU without its YNNPACK kernels.
     """
-    rotation = hughes_winget_rotation(velocity_gradient, dt)
-    return rotation @ stress @ rotation.T
+    cos, sin = in_plane_rotation(velocity_gradient, dt)
+    return from_entries(rotate_entries(entries(stress), cos, sin))

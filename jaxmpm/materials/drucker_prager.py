@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from jaxmpm import tensors
 from jaxmpm.errors import SceneError
 from jaxmpm.materials.base import Material, check_range, is_concrete
-from jaxmpm.materials.linear_elastic import bulk_and_shear_moduli, elastic_trial, p_wave_speed
+from jaxmpm.materials.linear_elastic import bulk_and_shear_moduli, elastic_trial_entries, p_wave_speed
 
 CONES = {
     # m as a function of sin(angle); each matches Mohr-Coulomb in one stress state.
@@ -190,16 +190,24 @@ class DruckerPragerLaw:
 
     def update(self, params, stress, velocity_gradient, dt, state):
         """One point: Jaumann rotation, elastic trial, plastic / viscoplastic correction."""
-        trial = elastic_trial(params, stress, velocity_gradient, dt)
-        stress, increment = self.correct(params, trial, dt)
+        trial = elastic_trial_entries(params, stress, velocity_gradient, dt)
+        stress, increment = self.correct_entries(params, trial, dt)
+        stress = tensors.from_entries(stress)
         return stress, {"plastic_strain": state["plastic_strain"] + increment}
 
     def correct(self, params, trial, dt):
         """Return the trial stress to the admissible set: (stress, plastic multiplier dl)."""
+        stress, increment = self.correct_entries(params, tensors.entries(trial), dt)
+        return tensors.from_entries(stress), increment
+
+    def correct_entries(self, params, trial, dt):
+        """`correct` on and to the 9 entries of the stress."""
         bulk, shear = bulk_and_shear_moduli(params["young"], params["poisson"])
         m = cone_slope(self.cone, params["friction_angle"])
         dilation_rate = bulk * cone_slope(self.cone, params["dilation_angle"])
-        pressure, deviatoric = tensors.pressure(trial), tensors.von_mises(trial)
+        pressure = -(trial[0] + trial[4] + trial[8]) / 3.0
+        trial_deviator = tensors.deviator_entries(trial)
+        deviatoric = tensors.von_mises_of_deviator(trial_deviator)
         overstress = deviatoric - m * pressure
         hardening = 3.0 * shear + m * dilation_rate
 
@@ -220,10 +228,10 @@ class DruckerPragerLaw:
         multiplier = fraction * safe_overstress / hardening
         new_deviatoric = safe_deviatoric - 3.0 * shear * multiplier
         new_pressure = safe_pressure + dilation_rate * multiplier
-        identity = jnp.eye(3, dtype=trial.dtype)
-        returned = tensors.deviator(trial) * (new_deviatoric / safe_deviatoric) - new_pressure * identity
-
-        stress = jnp.where(to_cone, returned, jnp.where(to_apex, jnp.zeros_like(trial), trial))
+        ratio = new_deviatoric / safe_deviatoric
+        returned = [value * ratio - (new_pressure if index in tensors.DIAGONAL else 0.0)
+                    for index, value in enumerate(trial_deviator)]
+        stress = [jnp.where(to_cone, r, jnp.where(to_apex, jnp.zeros_like(t), t)) for r, t in zip(returned, trial)]
         apex_multiplier = deviatoric / (3.0 * shear)
         increment = jnp.where(to_cone, multiplier, jnp.where(to_apex, apex_multiplier, 0.0))
         return stress, increment

@@ -18,21 +18,36 @@ def bulk_and_shear_moduli(young, poisson):
     return young / (3.0 * (1.0 - 2.0 * poisson)), young / (2.0 * (1.0 + poisson))
 
 
+def elastic_increment_entries(params, velocity_gradient, dt):
+    """Entries of dt (K tr(d) I + 2 G dev(d)), d = sym(L), from the 9 entries of L [Pa]."""
+    bulk, shear = bulk_and_shear_moduli(params["young"], params["poisson"])
+    rate = [0.5 * (velocity_gradient[3 * i + j] + velocity_gradient[3 * j + i]) for i in range(3) for j in range(3)]
+    volumetric = bulk * (rate[0] + rate[4] + rate[8])
+    return [
+        dt * (2.0 * shear * value + (volumetric if index in tensors.DIAGONAL else 0.0))
+        for index, value in enumerate(tensors.deviator_entries(rate))
+    ]
+
+
 def elastic_increment(params, rate_of_deformation, dt):
     """dt (K tr(d) I + 2 G dev(d)): the elastic stress increment for a strain-rate d [Pa]."""
-    bulk, shear = bulk_and_shear_moduli(params["young"], params["poisson"])
-    volumetric = tensors.trace(rate_of_deformation)
-    return dt * (
-        bulk * volumetric * jnp.eye(3, dtype=rate_of_deformation.dtype)
-        + 2.0 * shear * tensors.deviator(rate_of_deformation)
-    )
+    return tensors.from_entries(elastic_increment_entries(params, tensors.entries(rate_of_deformation), dt))
+
+
+def elastic_trial_entries(params, stress, velocity_gradient, dt):
+    """elastic_trial on and to 9 entries (what the plastic corrections continue with)."""
+    cos, sin = tensors.in_plane_rotation(velocity_gradient, dt)
+    rotated = tensors.rotate_entries(tensors.entries(stress), cos, sin)
+    increment = elastic_increment_entries(params, tensors.entries(velocity_gradient), dt)
+    return [a + b for a, b in zip(rotated, increment)]
 
 
 def elastic_trial(params, stress, velocity_gradient, dt):
     """Q sigma Q^T + dt (K tr(d) I + 2 G dev(d)): the stress rotated with the step's spin
-    (Jaumann, Hughes-Winget) plus the elastic increment; the trial state of every model."""
-    stress = tensors.jaumann_rotate(stress, velocity_gradient, dt)
-    return stress + elastic_increment(params, tensors.symmetric(velocity_gradient), dt)
+    (Jaumann, Hughes-Winget) plus the elastic increment; the trial state of every model.
+    Written on the 9 entries (one split in, one stack out): reverse mode of per-entry reads,
+    of matrix products and of broadcasts of scalars over 3x3 is slow on XLA:CPU."""
+    return tensors.from_entries(elastic_trial_entries(params, stress, velocity_gradient, dt))
 
 
 def p_wave_speed(params):
