@@ -75,7 +75,7 @@ def main():
           f"options={args.jit_options or 'default'} load={os.getloadavg()[0]:.2f}", flush=True)
     compiled = {}
     for name in ([] if args.skip_rollout else variants):
-        sim = jaxmpm.Simulation(scene, jaxmpm.rollout.parse_checkpointing(name))
+        sim = jaxmpm.Simulation(scene, jaxmpm.Checkpointing() if name == "default" else jaxmpm.rollout.parse_checkpointing(name))
 
         def loss(young, sim=sim):
             probes = sim.probes(jaxmpm.with_values(sim.params, {"block.young": young}))
