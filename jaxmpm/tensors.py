@@ -18,28 +18,10 @@ def safe_sqrt(x):
 def entries(tensor):
     """The 9 entries of (..., 3, 3) tensors, row-major, as a list of (...,) arrays, read with ONE
     split: reverse mode turns it into one concatenation, where 9 index reads would become 9 pads
-    of the whole array (slow in XLA:CPU's backward pass)."""
-    return list(_entries(tensor))
-
-
-@jax.custom_vjp
-def _entries(tensor):
+    of the whole array (slow in XLA:CPU's backward pass). Plain JAX (no custom VJP), so forward
+    mode works too."""
     flat = tensor.reshape(tensor.shape[:-2] + (9,))
-    return tuple(part.reshape(tensor.shape[:-2]) for part in jnp.split(flat, 9, axis=-1))
-
-
-def _entries_forward(tensor):
-    return _entries(tensor), None
-
-
-def _entries_backward(_, cotangents):
-    # The barrier keeps XLA from fusing the 9 cotangents' computations into the stack, where
-    # their shared parts would be evaluated once per entry.
-    cotangents = jax.lax.optimization_barrier(cotangents)
-    return (jnp.stack(cotangents, axis=-1).reshape(cotangents[0].shape + (3, 3)),)
-
-
-_entries.defvjp(_entries_forward, _entries_backward)
+    return [part.reshape(tensor.shape[:-2]) for part in jnp.split(flat, 9, axis=-1)]
 
 
 def from_entries(values):
