@@ -44,6 +44,17 @@ def merge_floats(floats, info):
     return jax.tree_util.tree_unflatten(treedef, [next(it) if m else l for l, m in zip(leaves, mask)])
 
 
+
+def parse_checkpointing(text):
+    """jaxmpm.Checkpointing from "default" or "seg=N;step=..."."""
+    from jaxmpm import Checkpointing
+
+    if text == "default":
+        return Checkpointing()
+    fields = dict(part.split("=", 1) for part in text.split(";"))
+    return Checkpointing(segment=int(fields["seg"]) if "seg" in fields else None, step=fields.get("step", "recompute"))
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("points", type=int)
@@ -75,7 +86,7 @@ def main():
           f"options={args.jit_options or 'default'} load={os.getloadavg()[0]:.2f}", flush=True)
     compiled = {}
     for name in ([] if args.skip_rollout else variants):
-        sim = jaxmpm.Simulation(scene, jaxmpm.Checkpointing() if name == "default" else jaxmpm.rollout.parse_checkpointing(name))
+        sim = jaxmpm.Simulation(scene, jaxmpm.Checkpointing() if name == "default" else parse_checkpointing(name))
 
         def loss(young, sim=sim):
             probes = sim.probes(jaxmpm.with_values(sim.params, {"block.young": young}))

@@ -9,10 +9,7 @@ scatter rows (measured in benchmarks/).
 """
 
 import dataclasses
-import functools
-import os
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -83,35 +80,7 @@ def node_keys(layout, base, field=None):
 
 def scatter_to_nodes(layout, base, values, field=None, fields=1):
     """Sum stencil values (N, s, s, C) into node arrays (fields, nx, ny, C), each point into
-    its own velocity field `field` (N,) (None: one field).
-
-    Linear in `values`; its reverse mode is `gather_from_nodes` of the cotangent (a custom
-    VJP: XLA's own transpose of the scatter and the shifted adds is 2-4x slower on CPU)."""
-    if CUSTOM_TRANSFER_VJP:
-        return _scatter(layout, fields, base, values, field)
-    return _scatter_plain(layout, base, values, field, fields)
-
-
-def gather_from_nodes(layout, base, nodes, support, field=None):
-    """Node values (fields, nx, ny, C) at each point's s x s stencil in its own field: (N, s, s, C).
-
-    The mirror of `scatter_to_nodes`: every node first holds its s x s neighbours' values side
-    by side (s^2 shifted copies of the small node array), then each point reads ONE contiguous
-    row at its base node, instead of s^2 scattered reads. Linear in `nodes`; its reverse mode
-    is `scatter_to_nodes` of the cotangent (a custom VJP).
-    """
-    if CUSTOM_TRANSFER_VJP:
-        return _gather(layout, support, nodes.shape[0], base, nodes, field)
-    return _gather_plain(layout, base, nodes, support, field)
-
-
-# Opt-in (JAXMPM_CUSTOM_TRANSFER_VJP=1): custom VJPs make reverse mode ~2-4x faster in these
-# transfers, but jax.custom_vjp functions cannot be differentiated in forward mode (jax.jvp,
-# jacfwd: inverse/levenberg_marquardt.py, inverse/fit.py), so they are off by default.
-CUSTOM_TRANSFER_VJP = os.environ.get("JAXMPM_CUSTOM_TRANSFER_VJP", "") not in ("", "0")
-
-
-def _scatter_plain(layout, base, values, field=None, fields=1):
+    its own velocity field `field` (N,) (None: one field)."""
     count, support, _, channels = values.shape
     nx, ny = layout.nodes
     rows = jnp.zeros((fields * nx * ny, support * support * channels), values.dtype)
@@ -125,7 +94,13 @@ def _scatter_plain(layout, base, values, field=None, fields=1):
     )
 
 
-def _gather_plain(layout, base, nodes, support, field=None):
+def gather_from_nodes(layout, base, nodes, support, field=None):
+    """Node values (fields, nx, ny, C) at each point's s x s stencil in its own field: (N, s, s, C).
+
+    The mirror of `scatter_to_nodes`: every node first holds its s x s neighbours' values side
+    by side (s^2 shifted copies of the small node array), then each point reads ONE contiguous
+    row at its base node, instead of s^2 scattered reads.
+    """
     fields, nx, ny, channels = nodes.shape
     # A base node is at most nx - s, so the wrapped-around part of each shift is never read.
     neighbours = jnp.stack(
@@ -135,73 +110,11 @@ def _gather_plain(layout, base, nodes, support, field=None):
     return rows[node_keys(layout, base, field)].reshape(len(base), support, support, channels)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
-def _scatter(layout, fields, base, values, field):
-    return _scatter_plain(layout, base, values, field, fields)
-
-
-def _scatter_forward(layout, fields, base, values, field):
-    return _scatter_plain(layout, base, values, field, fields), (base, field)
-
-
-def _scatter_backward(layout, fields, residuals, cotangent):
-    base, field = residuals
-    return None, _gather_plain(layout, base, cotangent, support_of(layout), field), None
-
-
-_scatter.defvjp(_scatter_forward, _scatter_backward)
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2))
-def _gather(layout, support, fields, base, nodes, field):
-    return _gather_plain(layout, base, nodes, support, field)
-
-
-def _gather_forward(layout, support, fields, base, nodes, field):
-    return _gather_plain(layout, base, nodes, support, field), (base, field)
-
-
-def _gather_backward(layout, support, fields, residuals, cotangent):
-    base, field = residuals
-    return None, _scatter_plain(layout, base, cotangent, field, fields), None
-
-
-_gather.defvjp(_gather_forward, _gather_backward)
-
-
-def support_of(layout):
-    return layout.shape.support
-
-
 def sum_over_stencil(values):
-    """Sum (N, s, s, ...) over the s x s stencil nodes (see _sum_over_stencil)."""
-    return _sum_over_stencil(values) if CUSTOM_TRANSFER_VJP else _sum_over_stencil_plain(values)
-
-
-def _sum_over_stencil_plain(values):
-    support = values.shape[1]
-    return sum(values[:, a, b] for a in range(support) for b in range(support))
-
-
-@jax.custom_vjp
-def _sum_over_stencil(values):
     """Sum (N, s, s, ...) over the s x s stencil nodes, written as s^2 - 1 adds: XLA:CPU runs
-    such short reductions (and einsums with a point batch axis) as slow library kernels.
-    Its reverse mode is a broadcast of the cotangent (a custom VJP: the transpose of the s^2
-    reads would be s^2 pads of the whole (N, s, s, ...) array)."""
+    such short reductions (and einsums with a point batch axis) as slow library kernels."""
     support = values.shape[1]
     return sum(values[:, a, b] for a in range(support) for b in range(support))
-
-
-def _sum_over_stencil_forward(values):
-    return _sum_over_stencil_plain(values), values.shape
-
-
-def _sum_over_stencil_backward(shape, cotangent):
-    return (jnp.broadcast_to(cotangent[:, None, None], shape),)
-
-
-_sum_over_stencil.defvjp(_sum_over_stencil_forward, _sum_over_stencil_backward)
 
 
 EDGES = {"left": (0, 0), "right": (0, -1), "bottom": (1, 0), "top": (1, -1)}   # (axis, side)

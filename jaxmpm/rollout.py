@@ -20,6 +20,12 @@ class Checkpointing:
     while it differentiates a segment, one state per step of that segment: memory grows like
     steps / segment + segment states, least (about 2 sqrt(steps)) at the default
     segment = ceil(sqrt(steps)), for about one extra forward pass of compute.
+
+    step: what the backward pass keeps of each step of the segment it differentiates:
+    "recompute" (the default: nothing, the step runs again), "store" (every intermediate: one
+    forward pass fewer, about 13 MB per step of a segment for 16k points in float32),
+    "names:stencil" (only the shape-function stencil) or "dots" (JAX's
+    dots_with_no_batch_dims_saveable policy). Measured in benchmarks/reverse_decomposition.py.
     """
 
     segment: int | None = None
@@ -68,10 +74,3 @@ def checkpointed_rollout(advance, state, steps, checkpointing):
         outputs = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), outputs, tail)
     return state, outputs
 
-
-def parse_checkpointing(text):
-    """Checkpointing from "default" or "seg=N;step=..." (benchmarks)."""
-    if text == "default":
-        return Checkpointing()
-    fields = dict(part.split("=", 1) for part in text.split(";"))
-    return Checkpointing(segment=int(fields["seg"]) if "seg" in fields else None, step=fields.get("step", "recompute"))
