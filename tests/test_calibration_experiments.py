@@ -105,7 +105,7 @@ def test_window_mean_is_the_centred_running_mean():
     np.testing.assert_array_equal(window_mean(history, 1), history)
 
 
-def test_heap_twin_recovers_the_truth_after_large_deformation():
+def test_heap_twin_recovers_the_truth_after_large_deformation(tmp_path):
     # The small heap's crest travels over a cell and most points change cell: the case linear
     # shape functions make rough. With quadratic B-splines Levenberg–Marquardt recovers the
     # truth from a start 30 % away (issue target: phi within 0.2 deg, fluidity and exponent 5 %).
@@ -121,6 +121,9 @@ def test_heap_twin_recovers_the_truth_after_large_deformation():
     cost = fit.cost
     assert cost["simulations"] > fit.iterations and cost["peak_memory_mb"] > 0
     assert len(fit.history["seconds"]) == fit.iterations
+    assert fit.evaluations >= fit.iterations
+    figure = fit.plot(tmp_path / "fit.png")
+    assert len(figure.axes) >= 2 and (tmp_path / "fit.png").stat().st_size > 0
 
 
 def test_heap_twin_with_noise_brackets_the_truth_in_two_standard_errors():

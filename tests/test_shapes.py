@@ -123,13 +123,13 @@ def bspline_dispersion(cells, dt):
 
 @pytest.mark.parametrize("shape", ["gimp", "bspline2"])
 def test_bar_small_motion_converges_at_second_order(shape):
-    """v0 = 1e-3 (no cell crossing), 10, 20, 40, 80 cells, fixed end through mirrored ghosts.
+    """v0 = 1e-3 (no cell crossing), 10, 20, 40 cells (80 measured too), fixed end through mirrored ghosts.
     Measured: gimp history errors 3.99e-2 ... 6.33e-4, period 3.14e-3 ... 5.51e-5 (like linear,
     whose 1-D function it equals away from cell edges for ppc = 2); bspline2 history errors
     7.79e-2, 1.96e-2, 4.93e-3, 1.23e-3, period 6.18e-3, 1.55e-3, 3.95e-4, 1.03e-4 (the estimate
     6.00e-3 ... 9.38e-5). Zeroing the ghost nodes instead of mirroring them, or not folding the
     ghosts' mass back, made bspline2 first order (period error 3.7e-2 at 10 cells)."""
-    cell_counts = [10, 20, 40, 80]
+    cell_counts = [10, 20, 40]
     history, period = [], []
     for cells in cell_counts:
         history_error, period_error, dt = bar_errors(cells, shape, 1e-3)
@@ -175,7 +175,9 @@ def column_errors(poisson, cell, shape):
     )
 
 
-@pytest.mark.parametrize("shape", ["gimp", "bspline2"])
+# bspline2, the default, settles the column in
+# test_elastic_validation.py::test_default_numerics_settle_the_confined_column_to_the_exact_stress.
+@pytest.mark.parametrize("shape", ["gimp"])
 def test_confined_column_settles_to_the_geostatic_stress(shape):
     """nu = 0.3 at h = 0.01 and 0.005, fixed base and slip sides through mirrored ghost nodes.
     Measured (h = 0.01 | 0.005): bspline2 point error 0.0139 | 0.0069 rho g H (half of linear's
