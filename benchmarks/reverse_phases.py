@@ -15,14 +15,12 @@ import jax
 sys.path.insert(0, str(Path(__file__).parent))
 
 
-def best(function, *args, repeats=15):
-    jax.block_until_ready(function(*args))
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(function(*args))
-        times.append(time.perf_counter() - start)
-    return min(times), statistics.median(times)
+from reverse_decomposition import best_median  # noqa: E402  (same directory)
+
+
+def best(function, *args):
+    """Best and median of 15 timed calls after one untimed call."""
+    return best_median(function, *args, repeats=15)
 
 
 def main():
