@@ -10,6 +10,7 @@ scatter rows (measured in benchmarks/).
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -80,34 +81,35 @@ def node_keys(layout, base, field=None):
 
 def scatter_to_nodes(layout, base, values, field=None, fields=1):
     """Sum stencil values (N, s, s, C) into node arrays (fields, nx, ny, C), each point into
-    its own velocity field `field` (N,) (None: one field)."""
+    its own velocity field `field` (N,) (None: one field).
+
+    The scatter keeps the (s, s, C) window of each row as it is: flattening it to s^2 C values
+    first costs a re-indexing copy that took 3x the scatter itself on XLA:CPU."""
     count, support, _, channels = values.shape
     nx, ny = layout.nodes
-    rows = jnp.zeros((fields * nx * ny, support * support * channels), values.dtype)
-    rows = rows.at[node_keys(layout, base, field)].add(values.reshape(count, -1))
+    rows = jnp.zeros((fields * nx * ny, support, support, channels), values.dtype)
+    rows = rows.at[node_keys(layout, base, field)].add(values, mode="promise_in_bounds")
     rows = rows.reshape(fields, nx, ny, support, support, channels)
-    # A base node is at most nx - s, so the shifted copies never wrap around.
-    return sum(
-        jnp.roll(rows[:, :, :, a, b], (a, b), axis=(1, 2))
+    # A base node is at most nx - s, so no shifted copy reaches past the last node.
+    shifted = (
+        jnp.pad(rows[:, :, :, a, b], ((0, 0), (a, support - 1 - a), (b, support - 1 - b), (0, 0)))
         for a in range(support)
         for b in range(support)
     )
+    return sum(shifted)[:, :nx, :ny]
 
 
 def gather_from_nodes(layout, base, nodes, support, field=None):
     """Node values (fields, nx, ny, C) at each point's s x s stencil in its own field: (N, s, s, C).
 
-    The mirror of `scatter_to_nodes`: every node first holds its s x s neighbours' values side
-    by side (s^2 shifted copies of the small node array), then each point reads ONE contiguous
-    row at its base node, instead of s^2 scattered reads.
-    """
-    fields, nx, ny, channels = nodes.shape
-    # A base node is at most nx - s, so the wrapped-around part of each shift is never read.
-    neighbours = jnp.stack(
-        [jnp.roll(nodes, (-a, -b), axis=(1, 2)) for a in range(support) for b in range(support)], axis=3
-    )
-    rows = neighbours.reshape(fields * nx * ny, support * support * channels)
-    return rows[node_keys(layout, base, field)].reshape(len(base), support, support, channels)
+    One windowed gather: each point reads the (s, s, C) block of its field's node array that
+    starts at its base node (a base node is at most nx - s, so the block is always inside).
+    On XLA:CPU this ran 4x faster than reading rows of an array of s^2 shifted node copies."""
+    field = jnp.zeros(len(base), jnp.int32) if field is None else field
+    starts = jnp.stack([field, base[:, 0], base[:, 1], jnp.zeros_like(field)], axis=1)
+    numbers = jax.lax.GatherDimensionNumbers(offset_dims=(1, 2, 3), collapsed_slice_dims=(0,), start_index_map=(0, 1, 2, 3))
+    window = (1, support, support, nodes.shape[-1])
+    return jax.lax.gather(nodes, starts, numbers, window, mode="promise_in_bounds")
 
 
 def sum_over_stencil(values):
