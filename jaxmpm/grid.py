@@ -4,7 +4,7 @@ Nodes form an (nx + 1, ny + 1) array, one per velocity field: node arrays are
 (fields, nx + 1, ny + 1, channels), and each point talks to its own body's field only (a scene
 without contact pairs has one field). Particle-to-grid is ONE scatter: each point adds a row
 holding all its s x s nodes' values side by side, keyed by its base node; the rows are then
-spread to the nodes with s x s shifted adds. This was ~2.5x faster on CPU than s^2 N separate
+summed onto the nodes as s x s shifted slices. This was ~2.5x faster on CPU than s^2 N separate
 scatter rows (measured in benchmarks/).
 """
 
@@ -54,16 +54,14 @@ class GridLayout:
         return stencil(self.shape, self.local(positions) + self.ghost, self.nodes, self.cell)
 
     def node_offsets(self, base, positions, support):
-        """x_I - x_p for each point's s x s stencil nodes: (N, s, s, 2) [m]."""
+        """x_I - x_p along x and along y for each point's s x s stencil nodes: (2, N, s, s) [m]."""
         offsets = jnp.arange(support, dtype=positions.dtype)
         first = (base - self.ghost).astype(positions.dtype)
         corner = jnp.asarray(self.origin, positions.dtype) + first * self.cell - positions
         along_x = corner[:, None, 0] + offsets * self.cell
         along_y = corner[:, None, 1] + offsets * self.cell
         shape = (len(positions), support, support)
-        return jnp.stack(
-            [jnp.broadcast_to(along_x[:, :, None], shape), jnp.broadcast_to(along_y[:, None, :], shape)], axis=-1
-        )
+        return jnp.stack([jnp.broadcast_to(along_x[:, :, None], shape), jnp.broadcast_to(along_y[:, None, :], shape)])
 
     def outside(self, positions):
         """(N,) bool: the point has left the grid."""
@@ -71,10 +69,10 @@ class GridLayout:
         return jnp.any((local < 0.0) | (local > jnp.asarray(self.cells, local.dtype)), axis=1)
 
 
-def node_keys(layout, base, field=None):
-    """Row of each point's base node in a flattened (fields, nx, ny) node array: (N,) int32.
-    `field` (N,) is each point's velocity field (None: all in field 0)."""
-    nx, ny = layout.nodes
+def node_keys(base, nodes, field=None):
+    """Row of each point's base node `base` (N, 2) in a flattened (fields, nx, ny) node array,
+    nodes = (nx, ny): (N,) int32. `field` (N,) is each point's velocity field (None: field 0)."""
+    nx, ny = nodes
     keys = base[:, 0] * ny + base[:, 1]
     return keys if field is None else keys + field * (nx * ny)
 
@@ -83,20 +81,20 @@ def scatter_to_nodes(layout, base, values, field=None, fields=1):
     """Sum stencil values (N, s, s, C) into node arrays (fields, nx, ny, C), each point into
     its own velocity field `field` (N,) (None: one field).
 
-    The scatter keeps the (s, s, C) window of each row as it is: flattening it to s^2 C values
-    first costs a re-indexing copy that took 3x the scatter itself on XLA:CPU."""
+    One scatter of N rows, each row keeping its (s, s, C) window as it is (flattening it to
+    s^2 C values first cost a re-indexing copy 3x the scatter itself on XLA:CPU), keyed by the
+    base node on an array with s - 1 extra node layers below each axis; node I then sums the
+    window entries (a, b) of the rows keyed at I - (a, b), as s^2 slices of that array."""
     count, support, _, channels = values.shape
     nx, ny = layout.nodes
-    rows = jnp.zeros((fields * nx * ny, support, support, channels), values.dtype)
-    rows = rows.at[node_keys(layout, base, field)].add(values, mode="promise_in_bounds")
-    rows = rows.reshape(fields, nx, ny, support, support, channels)
-    # A base node is at most nx - s, so no shifted copy reaches past the last node.
-    shifted = (
-        jnp.pad(rows[:, :, :, a, b], ((0, 0), (a, support - 1 - a), (b, support - 1 - b), (0, 0)))
-        for a in range(support)
-        for b in range(support)
+    extra = support - 1
+    keys = node_keys(base + extra, (nx + extra, ny + extra), field)
+    rows = jnp.zeros((fields * (nx + extra) * (ny + extra), support, support, channels), values.dtype)
+    rows = rows.at[keys].add(values, mode="promise_in_bounds")
+    rows = rows.reshape(fields, nx + extra, ny + extra, support, support, channels)
+    return sum(
+        rows[:, extra - a:extra - a + nx, extra - b:extra - b + ny, a, b] for a in range(support) for b in range(support)
     )
-    return sum(shifted)[:, :nx, :ny]
 
 
 def gather_from_nodes(layout, base, nodes, support, field=None):

@@ -51,6 +51,7 @@ from jaxmpm.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
 )
 from jaxmpm.state import Diagnostics, record_errors
+from jaxmpm.tensors import from_entries
 
 MASS_FLOOR = 1e-10   # nodes lighter than this fraction of the heaviest point count as empty
 
@@ -116,22 +117,15 @@ class Structure:
         return tuple(block for block in self.bodies if block.kinematics == kinematics)
 
 
-def point_momentum(particles, stencil, offsets):
-    """Momentum each point gives its stencil nodes, (N, s, s, 2): m_p N_I v_p, plus the APIC
-    affine part m_p N_I C_p (x_I - x_p) when `offsets` (x_I - x_p) are given."""
+def point_momentum(particles, stencil):
+    """Momentum m_p N_I v_p each point gives its stencil nodes, (N, s, s, 2)."""
     weighted = particles.mass[:, None, None] * stencil.weights
-    terms = [(weighted, particles.v)]
-    if offsets is not None:
-        affine = particles.affine
-        terms += [(weighted * offsets[..., 0], affine[:, :, 0]), (weighted * offsets[..., 1], affine[:, :, 1])]
-    return combine_on_stencil(terms)
+    return jnp.stack([weighted * particles.v[:, None, None, axis] for axis in range(2)], axis=-1)
 
 
-def combine_on_stencil(terms):
-    """sum_k a_k[p, I] b_k[p, :] for terms [(a_k (N, s, s), b_k (N, C))]: stencil values built
-    by broadcast multiply-adds, which XLA:CPU vectorises (a concatenation along the channel
-    axis of (N, s, s, C) arrays it does not)."""
-    return sum(coefficient[..., None] * vector[:, None, None, :] for coefficient, vector in terms)
+def per_point(values):
+    """(N,) values broadcast against (N, s, s) stencil arrays."""
+    return values[:, None, None]
 
 
 class Nodes(NamedTuple):
@@ -147,38 +141,33 @@ class Nodes(NamedTuple):
 def particles_to_grid(particles, stencil, offsets, field, structure):
     """Node mass m_I, momentum p_I, force f_I = sum_p (m_p N_I g - V_p sigma_p . grad N_I) and,
     with contact pairs, the mass gradient sum_p m_p grad N_I, each point into its own field.
+    With APIC (`offsets` (2, N, s, s) = x_I - x_p) the momentum is m_p N_I (v_p + C_p (x_I - x_p)).
 
     Built as one (N, s, s, 5 or 7) array [m, p_x, p_y, f_x, f_y (, dm/dx, dm/dy)] for the
-    single scatter."""
-    weights, gradients = stencil.weights, stencil.gradients
+    single scatter, each channel written out (no products with zero channels)."""
     mass, velocity = particles.mass, particles.v
-    zero = jnp.zeros_like(mass)
-    gravity = jnp.asarray(structure.gravity, mass.dtype)
+    weighted = per_point(mass) * stencil.weights
+    gravity = structure.gravity
     stress = -particles.volume[:, None, None] * particles.stress[:, :2, :2]     # -V_p sigma_p
-    normals = structure.has_contact
-
-    def channels(*columns, gradient=()):
-        return jnp.stack(columns + (gradient if normals else ()), axis=1)
-
-    radial_force = mass * gravity[0]
+    external = [mass * gravity[0], mass * gravity[1]]
     if structure.axisymmetric:   # the hoop stress pulls the ring inwards: -V_p sigma_tt N_I / r_p
-        radial_force = radial_force - particles.volume * particles.stress[:, 2, 2] / point_radius(particles.x, structure)
-    terms = [   # N_I [m, m v, m g] + dN_I/dx_j [0, 0, 0, -V sigma_xj, -V sigma_yj (, m delta_xj, m delta_yj)]
-        (weights, channels(mass, mass * velocity[:, 0], mass * velocity[:, 1], radial_force, mass * gravity[1],
-                           gradient=(zero, zero))),
-        (gradients[..., 0], channels(zero, zero, zero, stress[:, 0, 0], stress[:, 1, 0], gradient=(mass, zero))),
-        (gradients[..., 1], channels(zero, zero, zero, stress[:, 0, 1], stress[:, 1, 1], gradient=(zero, mass))),
-    ]
-    if offsets is not None:   # APIC: m_p N_I C_p (x_I - x_p) joins the momentum
-        weighted, affine = mass[:, None, None] * weights, particles.affine
-        for axis in range(2):
-            terms.append((weighted * offsets[..., axis],
-                          channels(zero, affine[:, 0, axis], affine[:, 1, axis], zero, zero, gradient=(zero, zero))))
+        external[0] = external[0] - particles.volume * particles.stress[:, 2, 2] / point_radius(particles.x, structure)
+    momentum, force = [], []
+    for axis in range(2):
+        moving = per_point(velocity[:, axis])
+        if offsets is not None:
+            affine = particles.affine
+            moving = moving + per_point(affine[:, axis, 0]) * offsets[0] + per_point(affine[:, axis, 1]) * offsets[1]
+        momentum.append(weighted * moving)
+        force.append(stencil.weights * per_point(external[axis]) + stencil.gradients[0] * per_point(stress[:, axis, 0])
+                     + stencil.gradients[1] * per_point(stress[:, axis, 1]))
+    channels = [weighted, *momentum, *force]
+    if structure.has_contact:
+        channels += [per_point(mass) * stencil.gradients[0], per_point(mass) * stencil.gradients[1]]
     layout = structure.layout
-    values = combine_on_stencil(terms)
-    nodes = scatter_to_nodes(layout, stencil.base, values, field, structure.fields)
+    nodes = scatter_to_nodes(layout, stencil.base, jnp.stack(channels, axis=-1), field, structure.fields)
     mass_gradient = None
-    if normals:   # the mirror image of a mass gradient flips only its normal component (as at a slip edge)
+    if structure.has_contact:   # the mirror image of a mass gradient flips only its normal component (as at a slip edge)
         mirror = dataclasses.replace(structure.boundaries, **{
             edge: "slip" for edge, kind in dataclasses.asdict(structure.boundaries).items() if kind != "free"
         })
@@ -384,7 +373,7 @@ def move_kinematic_bodies(state, start, structure, motions, received, positions)
 def remap_velocity(particles, stencil, field, structure, mass, constrain, floor):
     """MUSL: nodal velocity sum_p m_p v_p N_I / m_I of each field from the updated points."""
     layout = structure.layout
-    momentum = scatter_to_nodes(layout, stencil.base, point_momentum(particles, stencil, None), field, structure.fields)
+    momentum = scatter_to_nodes(layout, stencil.base, point_momentum(particles, stencil), field, structure.fields)
     return constrain(safe_velocity(fold_ghosts(momentum, layout, structure.boundaries, scalars=0), mass, floor))
 
 
@@ -394,12 +383,13 @@ def velocity_gradient(stencil, velocity, field, structure, positions):
     Sulsky & Schreyer 1996)."""
     support = stencil.weights.shape[1]
     nodal = gather_from_nodes(structure.layout, stencil.base, velocity, support, field)
-    in_plane = sum_over_stencil(nodal[..., :, None] * stencil.gradients[..., None, :])
-    gradient = jnp.pad(in_plane, ((0, 0), (0, 1), (0, 1)))
+    along_x, along_y = stencil.gradients
+    in_plane = [sum_over_stencil(nodal[..., row] * along) for row in range(2) for along in (along_x, along_y)]
+    zero = jnp.zeros_like(in_plane[0])
+    hoop = zero
     if structure.axisymmetric:
-        radial = sum_over_stencil(stencil.weights * nodal[..., 0])
-        gradient = gradient.at[:, 2, 2].set(radial / point_radius(positions, structure))
-    return gradient
+        hoop = sum_over_stencil(stencil.weights * nodal[..., 0]) / point_radius(positions, structure)
+    return from_entries([in_plane[0], in_plane[1], zero, in_plane[2], in_plane[3], zero, zero, zero, hoop])
 
 
 def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
