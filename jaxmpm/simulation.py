@@ -366,7 +366,27 @@ def describe_failure(sim: Simulation, state: State) -> str:
     step = int(state.error_step)
     return (
         f"the run stopped at step {step} (t = {step * sim.dt:.6g} s): point {index - block.start} "
-        f"of body {block.name!r} {what}; the output holds the run up to the step before."
+        f"of body {block.name!r} {what}; the output holds the run up to the step before"
+        f"{instability_hint(sim, state)}."
+    )
+
+
+def instability_hint(sim: Simulation, state: State) -> str:
+    """A clause for `describe_failure` when the failure looks like a numerical instability:
+    by the state's step some point moved more than a cell per step (|v| dt > h) or is
+    non-finite, which physical motion within the CFL limit never does. Empty otherwise (a
+    body that simply flows off a free edge, say)."""
+    speeds = np.hypot(*np.asarray(state.particles.v, np.float64).reshape(-1, 2).T)
+    finite = np.all(np.isfinite(speeds)) and np.all(np.isfinite(np.asarray(state.particles.x)))
+    if finite and np.max(speeds, initial=0.0) * sim.dt <= sim.scene.grid.cell:
+        return ""
+    scene = sim.scene
+    key, value = ("scene.dt", scene.dt) if scene.dt is not None else ("scene.cfl", scene.cfl)
+    numerics = scene.numerics
+    return (
+        f" (by then points moved more than a cell per step or went non-finite: the step is unstable "
+        f"with {key} = {value:g}, numerics.shape = {numerics.shape!r}, transfer = {numerics.transfer!r}, "
+        f"update = {numerics.update!r}; lower {key} or change the numerics, see docs/stability.md)"
     )
 
 
