@@ -290,7 +290,6 @@ def part_cfl(log):
 
 
 def part_sweeps(log):
-    import jax.numpy as jnp
     import jaxmpm
 
     sections = {}
@@ -358,7 +357,6 @@ def part_sweeps(log):
     rows.append(f"| elastic | | {c_lim['elastic']:.4g} | 0 | | {f_lim['elastic']:.4g} | 0 |")
     rows.append(f"| Drucker-Prager | | {c_lim['DP']:.4g} | 1 | | {f_lim['DP']:.4g} | 1 |")
     sections["perzyna"] = "\n".join(rows)
-    del jnp
     return sections
 
 
@@ -416,11 +414,6 @@ def part_bonded(log):
 
 
 def part_float32(log, steps):
-    import jax
-    import jax.numpy as jnp
-    import jaxmpm
-    import numpy as np
-
     rows = ["| numerics | dtype | steps | wall [s] | energy drift (E_end - E_0)/E_0 | max abs(E - E_0)/E_0 "
             "| tip at the end [m] | d tip / d E [m/Pa] | forward-mode wall [s] |",
             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
