@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxmpm.adjoints import paired_linear
 from jaxmpm.shapes import make_shape, stencil
 
 
@@ -77,7 +78,7 @@ def node_keys(base, nodes, field=None):
     return keys if field is None else keys + field * (nx * ny)
 
 
-def scatter_to_nodes(layout, base, values, field=None, fields=1):
+def add_to_nodes(layout, base, values, field=None, fields=1):
     """Sum stencil values (N, s, s, C) into node arrays (fields, nx, ny, C), each point into
     its own velocity field `field` (N,) (None: one field).
 
@@ -97,7 +98,7 @@ def scatter_to_nodes(layout, base, values, field=None, fields=1):
     )
 
 
-def gather_from_nodes(layout, base, nodes, support, field=None):
+def read_at_stencils(layout, base, nodes, support, field=None):
     """Node values (fields, nx, ny, C) at each point's s x s stencil in its own field: (N, s, s, C).
 
     One windowed gather: each point reads the (s, s, C) block of its field's node array that
@@ -110,11 +111,48 @@ def gather_from_nodes(layout, base, nodes, support, field=None):
     return jax.lax.gather(nodes, starts, numbers, window, mode="promise_in_bounds")
 
 
-def sum_over_stencil(values):
+def scatter_to_nodes(layout, base, values, field=None, fields=1):
+    """`add_to_nodes`, whose reverse mode is `read_at_stencils` (its exact transpose)."""
+    support = values.shape[1]
+
+    def add(indices, values):
+        return add_to_nodes(layout, indices[0], values, indices[1], fields)
+
+    def read(indices, nodes):
+        return read_at_stencils(layout, indices[0], nodes, support, indices[1])
+
+    return paired_linear(add, read)((base, field), values)
+
+
+def gather_from_nodes(layout, base, nodes, support, field=None):
+    """`read_at_stencils`, whose reverse mode is `add_to_nodes` (its exact transpose)."""
+    fields = nodes.shape[0]
+
+    def read(indices, nodes):
+        return read_at_stencils(layout, indices[0], nodes, support, indices[1])
+
+    def add(indices, values):
+        return add_to_nodes(layout, indices[0], values, indices[1], fields)
+
+    return paired_linear(read, add)((base, field), nodes)
+
+
+def add_over_stencil(values):
     """Sum (N, s, s, ...) over the s x s stencil nodes, written as s^2 - 1 adds: XLA:CPU runs
     such short reductions (and einsums with a point batch axis) as slow library kernels."""
     support = values.shape[1]
     return sum(values[:, a, b] for a in range(support) for b in range(support))
+
+
+def sum_over_stencil(values):
+    """`add_over_stencil`, whose reverse mode is a broadcast over the stencil (XLA's own
+    transpose pads every one of the s^2 slices back to the whole array)."""
+    shape = values.shape
+
+    def spread(_, totals):
+        return jnp.broadcast_to(totals[:, None, None], shape)
+
+    return paired_linear(lambda _, values: add_over_stencil(values), spread)((), values)
 
 
 EDGES = {"left": (0, 0), "right": (0, -1), "bottom": (1, 0), "top": (1, -1)}   # (axis, side)
