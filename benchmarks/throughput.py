@@ -2,15 +2,17 @@
 
     python benchmarks/throughput.py              # all cases; prints a table, updates docs/benchmarks.md
     python benchmarks/throughput.py --no-write   # print only
-    python benchmarks/throughput.py --quick      # fewer repeats, 10k points only (a smoke run)
+    python benchmarks/throughput.py --quick      # fewer repeats, 5k points in float32 only (a smoke run)
     python benchmarks/throughput.py --reference  # jaxmpm against a Taichi kernel of its step (bench extra)
 
-The scene: a linear-elastic block (rho = 1000 kg/m^3, E = 1 MPa, nu = 0.3) resting on the fixed
-floor of a 1 m x 1 m box under gravity, linear shape functions, 2 x 2 points per cell, MUSL,
-FLIP 0.99, dt = 0.4 h / 40 m/s. Sizes: 10,000 points (0.5 m block, 100^2 cells) and 16,384 points
-(the 0.5 m block on the 128^2 grid of the CPU MPM comparison quoted in docs/benchmarks.md).
+The scene: a linear-elastic block (rho = 1000 kg/m^3, E = 1 MPa, nu = 0.3), or the same block as
+Drucker-Prager sand, resting on the fixed floor of a 1 m x 1 m box under gravity, 2 x 2 points
+per cell, MUSL, dt = 0.4 h / 40 m/s; linear, gimp and bspline2 shape functions with APIC, and
+linear with FLIP 0.99 (the `fast` preset's scheme). Sizes: 5,184, 16,384 and 65,536 points (the
+0.5 m block on 72^2, 128^2 and 256^2 cells). Every case times the forward step; GRADIENT_CASES
+also time the gradient.
 
-Each (size, dtype) case runs in its own subprocess, so that its peak resident memory
+Each case runs in its own subprocess, so that its peak resident memory
 (getrusage maxrss) belongs to that case alone and float32 runs without JAX's 64-bit mode, as a
 float32 user would run it. This is a script, not a test: the figures are printed and written to
 docs/benchmarks.md between marker comments (the rest of that file is left alone).
@@ -40,20 +42,26 @@ ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "benchmarks.md"
 BEGIN, END = "<!-- throughput:begin -->", "<!-- throughput:end -->"
 
-SIZES = {10_000: 100, 16_384: 128}     # points -> cells across the 1 m box (block is 0.5 m wide)
-# XLA:CPU (jaxlib 0.10) hands reductions to YNNPACK library fusions, which are slow for the
-# short reductions of this solver; one extra case measures the scene with them switched off.
-NO_YNN = "--xla_cpu_experimental_ynn_fusion_type="
-CASES = [  # (points, dtype, material, shape function, extra XLA_FLAGS)
-    (10_000, "float32", "elastic", "linear", ""),
-    (10_000, "float64", "elastic", "linear", ""),
-    (16_384, "float32", "elastic", "linear", ""),
-    (16_384, "float64", "elastic", "linear", ""),
-    (16_384, "float32", "elastic", "linear", NO_YNN),
-    (16_384, "float32", "drucker_prager", "linear", ""),
-    (16_384, "float64", "drucker_prager", "linear", ""),
-    (16_384, "float32", "drucker_prager", "bspline2", ""),
+SIZES = {5_184: 72, 16_384: 128, 65_536: 256}   # points -> cells across the 1 m box (block: 0.5 m wide, 2 x 2 per cell)
+# (shape function, transfer): the three shapes with APIC (the default transfer), and the
+# `fast` preset's linear + FLIP 0.99
+SCHEMES = [("linear", "apic"), ("gimp", "apic"), ("bspline2", "apic"), ("linear", "flip")]
+GRADIENT_CASES = {  # the cases whose gradient is timed too (each costs a gradient compilation)
+    (5_184, "float32", "drucker_prager", "bspline2", "apic"),
+    (16_384, "float32", "drucker_prager", "linear", "apic"),
+    (16_384, "float32", "drucker_prager", "gimp", "apic"),
+    (16_384, "float32", "drucker_prager", "bspline2", "apic"),
+    (16_384, "float32", "drucker_prager", "linear", "flip"),
+    (16_384, "float64", "drucker_prager", "bspline2", "apic"),
+    (16_384, "float32", "elastic", "bspline2", "apic"),
+    (65_536, "float32", "drucker_prager", "bspline2", "apic"),
+}
+CASES = [  # (points, dtype, material, shape function, transfer)
+    (points, dtype, material, shape, transfer)
+    for points in SIZES for material in ("elastic", "drucker_prager") for shape, transfer in SCHEMES
+    for dtype in ("float32", "float64")
 ]
+QUICK_CASES = [case for case in CASES if case[0] == 5_184 and case[1] == "float32"]
 STEPS_PER_CALL = 100                   # steps per `sim._advance` call (one output interval)
 GRADIENT_STEPS = 200                   # steps of the rollout differentiated for the ratio
 
@@ -119,7 +127,7 @@ def time_forward(sim, params, initial, repeats: int):
     return first, times, cpu_seconds
 
 
-def run_case(points: int, dtype: str, material: str, shape: str, repeats: int) -> dict:
+def run_case(points: int, dtype: str, material: str, shape: str, transfer: str, repeats: int) -> dict:
     import jax
 
     if dtype == "float64":
@@ -129,11 +137,12 @@ def run_case(points: int, dtype: str, material: str, shape: str, repeats: int) -
     from jaxmpm import Simulation, with_values
 
     cells = SIZES[points]
-    result = {"points": points, "dtype": dtype, "material": material, "shape": shape, "rss_start_mb": None}
+    result = {"points": points, "dtype": dtype, "material": material, "shape": shape, "transfer": transfer,
+              "rss_start_mb": None}
 
     # Forward: one output interval of STEPS_PER_CALL steps (lax.scan), the loop `Simulation.run`
     # drives. Every repeat starts from the same initial state.
-    sim = Simulation(block_scene(cells, dtype, STEPS_PER_CALL, material, shape))
+    sim = Simulation(block_scene(cells, dtype, STEPS_PER_CALL, material, shape, transfer))
     assert sim.point_count == points, sim.point_count
     params = sim.cast(sim.params)
     initial = sim.initial_state(params)
@@ -152,10 +161,12 @@ def run_case(points: int, dtype: str, material: str, shape: str, repeats: int) -
         throughput_per_cpu_second=points * STEPS_PER_CALL / cpu_best,
         rss_forward_mb=peak_rss_mb(),
     )
+    if (points, dtype, material, shape, transfer) not in GRADIENT_CASES:
+        return result
 
     # Reverse mode: d/dE of a scalar of the probe histories of a GRADIENT_STEPS rollout
     # (checkpointed, default segments), against the same scalar computed forward only.
-    sim = Simulation(block_scene(cells, dtype, GRADIENT_STEPS, material, shape))
+    sim = Simulation(block_scene(cells, dtype, GRADIENT_STEPS, material, shape, transfer))
 
     def loss(young):
         probes = sim.probes(with_values(sim.params, {"block.young": young}))
@@ -234,19 +245,20 @@ def table(results: list[dict], machine: dict, load_before: float) -> str:
         f"{machine['date']}; 1-minute load average {load_before:.1f} before and "
         f"{machine['load']:.1f} after the run (0 = idle machine).",
         "",
-        "| points | material, shape | dtype | forward M particle-steps/s, best / median | per CPU-second | "
+        "| points | material | shape, transfer | dtype | forward M particle-steps/s, best / median | per CPU-second | "
         "compile forward | gradient / forward time | compile gradient | "
         "peak RSS forward / gradient | XLA temp, gradient |",
-        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "|---:|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in results:
-        label = r["dtype"] + (", YNNPACK fusion off" if NO_YNN in r.get("xla_flags", "") else "")
+        transfer = "APIC" if r["transfer"] == "apic" else "FLIP 0.99"
+        gradient = ("| | | | " if "grad_ratio" not in r else
+                    f"| {r['grad_ratio']:.1f}x | {r['compile_grad_s']:.1f} s | {r['rss_forward_mb']:.0f} / "
+                    f"{r['rss_grad_mb']:.0f} MB | {r['grad_temp_mb']:.0f} MB ")
         lines.append(
-            f"| {r['points']:,} | {r['material'].replace('_', '-')}, {r['shape']} | {label} | {r['throughput_best'] / 1e6:.2f} / "
-            f"{r['throughput_median'] / 1e6:.2f} | {r['throughput_per_cpu_second'] / 1e6:.2f} | "
-            f"{r['compile_forward_s']:.2f} s | "
-            f"{r['grad_ratio']:.1f}x | {r['compile_grad_s']:.1f} s | "
-            f"{r['rss_forward_mb']:.0f} / {r['rss_grad_mb']:.0f} MB | {r['grad_temp_mb']:.0f} MB |"
+            f"| {r['points']:,} | {r['material'].replace('_', '-')} | {r['shape']}, {transfer} | {r['dtype']} | "
+            f"{r['throughput_best'] / 1e6:.2f} / {r['throughput_median'] / 1e6:.2f} | "
+            f"{r['throughput_per_cpu_second'] / 1e6:.2f} | {r['compile_forward_s']:.2f} s {gradient}|"
         )
     return "\n".join(lines)
 
@@ -254,31 +266,27 @@ def table(results: list[dict], machine: dict, load_before: float) -> str:
 METHOD = f"""\
 Method. Scene: a linear-elastic block (rho = 1000 kg/m^3, E = 1 MPa, nu = 0.3) resting on the
 fixed floor of a 1 m x 1 m box under gravity, or the same block as rate-independent
-Drucker-Prager sand (phi = 30 deg, the paper's cone), which slumps under its own weight (the
-last rows: the material of the peer codes below); linear shape functions (the last row:
-quadratic B-splines, as the peers used), 2 x 2 points per cell,
-MUSL, FLIP 0.99, dt = 0.4 h / (40 m/s); 10,000 points on a 100^2 grid, and 16,384 points on the
-128^2 grid of a comparison of CPU MPM codes (Numba, Taichi, Warp, JAX) measured on this machine kind (whose peers ran APIC/MLS with a
-Hencky-strain Drucker-Prager, a different step, so compare orders of magnitude, not digits).
-Forward throughput is
-points x {STEPS_PER_CALL} / wall time of one `Simulation._advance` call ({STEPS_PER_CALL} steps
-in a `lax.scan`, the loop `Simulation.run` drives), outputs ready (`block_until_ready`), after
-compilation, always from the same initial state; best and median of the repeats. "Per
-CPU-second" divides by the process CPU time of the best call instead (all threads): it moves
-less than wall time when other work shares the machine, and equals it when XLA ran on one core.
-Compile time is the first call minus the median steady call. The gradient ratio is the best
-time of `jax.jit(jax.grad(loss))` over the best of `jax.jit(loss)`, where loss(E) sums two probe
-histories of `Simulation.probes` over a {GRADIENT_STEPS}-step rollout (default checkpointing:
-segments of ceil(sqrt(steps)) steps, each step checkpointed; the gradient therefore runs the
-forward step three times and the backward step once). Each case runs in a fresh process:
-peak RSS is `getrusage` maxrss after the forward runs and after the gradient runs (including
-the ~0.3 GB of the Python and JAX runtime and of compilation); XLA temp is the compiled
-gradient's `memory_analysis().temp_size_in_bytes`. float32 cases run without JAX's 64-bit mode,
-float64 cases with it. The row marked "YNNPACK fusion off" sets `XLA_FLAGS={NO_YNN}`, which stops XLA:CPU (jaxlib
-0.10) from sending reductions to YNNPACK library kernels, slow for this solver's short
-reductions. Timings on this shared 2-core VM move by +-10 % when it is idle and by up to 2x
-when other jobs run (see the load average): compare rows of one run, not runs. Regenerate
-with `python benchmarks/throughput.py` (about 4 minutes; `--quick` for the 10k rows)."""
+Drucker-Prager sand (phi = 30 deg, the paper's cone), which slumps under its own weight;
+2 x 2 points per cell, MUSL, dt = 0.4 h / (40 m/s); each shape function with APIC (the default
+transfer) and linear shapes with FLIP 0.99 (the `fast` preset's scheme); 5,184, 16,384 and
+65,536 points on 72^2, 128^2 and 256^2 grids (16,384 on 128^2 is the size of a comparison of
+CPU MPM codes measured on this machine kind). Forward throughput is points x {STEPS_PER_CALL} /
+wall time of one `Simulation._advance` call ({STEPS_PER_CALL} steps in a `lax.scan`, the loop
+`Simulation.run` drives), outputs ready (`block_until_ready`), after compilation, always from
+the same initial state; best and median of the repeats. "Per CPU-second" divides by the
+process CPU time of the best call instead (all threads). Compile time is the first call minus
+the median steady call. For the rows with a gradient, the ratio is the best time of the
+jitted `jax.grad(loss)` (compiled as jaxmpm compiles its own reverse-mode work, YNNPACK
+fusions off) over the best of `jax.jit(loss)`, where loss(E) sums two probe histories of
+`Simulation.probes` over a {GRADIENT_STEPS}-step rollout (default checkpointing: segments of
+ceil(sqrt(steps)) steps, each step checkpointed, so the gradient runs the forward step three
+times and the backward step once). Each case runs in a fresh process: peak RSS is `getrusage`
+maxrss after the forward runs and after the gradient runs (including the ~0.3 GB of the Python
+and JAX runtime and of compilation); XLA temp is the compiled gradient's
+`memory_analysis().temp_size_in_bytes`. float32 cases run without JAX's 64-bit mode, float64
+cases with it. Timings on this shared 2-core VM move by +-10 % when it is idle and by up to 2x
+when other jobs run (see the load average): compare rows of one run, not runs. Regenerate with
+`python benchmarks/throughput.py` (about 15 minutes; `--quick` for the 5k float32 rows)."""
 
 
 def write_section(begin: str, end: str, body: str, doc: Path = DOC):
@@ -452,17 +460,17 @@ def worker(command: list[str], environment: dict | None = None) -> dict:
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--no-write", action="store_true", help="print the table only")
-    parser.add_argument("--quick", action="store_true", help="10k points, fewer repeats (with --reference: one round)")
+    parser.add_argument("--quick", action="store_true", help="5k points in float32, fewer repeats (with --reference: one round)")
     parser.add_argument("--repeats", type=int, default=None, help="forward repeats per case")
     parser.add_argument("--reference", action="store_true",
                         help="only the Taichi reference comparison (needs the bench extra)")
-    parser.add_argument("--case", nargs=4, metavar=("POINTS", "DTYPE", "MATERIAL", "SHAPE"), help=argparse.SUPPRESS)
+    parser.add_argument("--case", nargs=5, metavar=("POINTS", "DTYPE", "MATERIAL", "SHAPE", "TRANSFER"), help=argparse.SUPPRESS)
     parser.add_argument("--reference-case", choices=REFERENCE_CASES, help=argparse.SUPPRESS)
     args = parser.parse_args()
-    repeats = args.repeats or (3 if args.quick else 5 if args.reference else 7)
+    repeats = args.repeats or (3 if args.quick else 5)
 
     if args.case:                       # worker: one case, JSON on the last line of stdout
-        print(json.dumps(run_case(int(args.case[0]), args.case[1], args.case[2], args.case[3], repeats)))
+        print(json.dumps(run_case(int(args.case[0]), *args.case[1:], repeats)))
         return
     if args.reference_case:             # worker: one reference case
         print(json.dumps(run_reference_case(args.reference_case, repeats)))
@@ -484,16 +492,12 @@ def main():
 
 def throughput_table(repeats: int, quick: bool, load_before: float) -> str:
     """Run CASES (the 10k ones with `quick`), each in its own process; the table."""
-    cases = [case for case in CASES if case[0] == 10_000 and not case[4]] if quick else CASES
     results = []
-    for points, dtype, material, shape, flags in cases:
-        print(f"case {points:,} points {dtype} {material} {shape} {flags} ...", file=sys.stderr, flush=True)
-        command = [sys.executable, __file__, "--case", str(points), dtype, material, shape, "--repeats", str(repeats)]
-        environment = dict(os.environ)
-        environment["XLA_FLAGS"] = " ".join(filter(None, [environment.get("XLA_FLAGS", ""), flags]))
-        result = worker(command, environment)
-        result["xla_flags"] = flags
-        results.append(result)
+    for points, dtype, material, shape, transfer in QUICK_CASES if quick else CASES:
+        print(f"case {points:,} points {dtype} {material} {shape} {transfer} ...", file=sys.stderr, flush=True)
+        command = [sys.executable, __file__, "--case", str(points), dtype, material, shape, transfer,
+                   "--repeats", str(repeats)]
+        results.append(worker(command))
     return table(results, machine_info(), load_before)
 
 

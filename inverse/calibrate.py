@@ -89,13 +89,11 @@ class CompiledProblem:
     simulations, fitted parameters, optimiser and observation layouts (data values and the
     experiments' fixed values may change freely).
 
-    start(z (S, P), data, bases) -> state;  first and iterate(z, state, data, bases) ->
-    (z, state, loss at the incoming z (S,), ||dL/dz||_inf there (S,)): `first` for the first
-    iteration, `iterate` (None: the same as `first`) for the others."""
+    start(z (S, P), data, bases) -> state;  iterate(z, state, data, bases) ->
+    (z, state, loss at the incoming z (S,), ||dL/dz||_inf there (S,))."""
 
     residuals: object      # residuals(values (P,), data, bases) -> (M,)
     start: object
-    first: object
     iterate: object
     losses: object         # losses(z (S, P), data, bases) -> (S,)
 
@@ -120,16 +118,14 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
     batched = functools.partial(jax.vmap, in_axes=(0, 0, None, None))
     if optimizer_name == "lm":
         start, iterate = levenberg_marquardt_iteration(residuals_of_z, count)
-        first = iterate
         compile_iteration = jax.jit          # forward mode: no reverse-mode XLA options needed
     else:
-        start, first, iterate = optax_iteration(loss_of_z, optimizer_name, learning_rate)
+        start, iterate = optax_iteration(loss_of_z, optimizer_name, learning_rate)
         compile_iteration = jit_reverse_mode
     problem = CompiledProblem(
         residuals=residuals,
-        start=jax.jit(jax.vmap(start, in_axes=(0, None, None))),
-        first=compile_iteration(batched(first)),
-        iterate=compile_iteration(batched(iterate)) if iterate is not first else None,
+        start=compile_iteration(jax.vmap(start, in_axes=(0, None, None))),
+        iterate=compile_iteration(batched(iterate)),
         losses=jax.jit(jax.vmap(loss_of_z, in_axes=(0, None, None))),
     )
     cache[key] = problem
@@ -154,32 +150,39 @@ def levenberg_marquardt_iteration(residuals_of_z, count):
 
 
 def optax_iteration(loss_of_z, optimizer_name, learning_rate):
-    """(start, first, iterate) of an optax optimiser on the loss (reverse-mode gradients)."""
+    """(start, iterate) of an optax optimiser on the loss (reverse-mode gradients)."""
     transform = make_optimizer(optimizer_name, learning_rate)
+    stored = optimizer_name == "lbfgs"
 
     def start(z, data, bases):
-        del data, bases
-        return transform.init(z)
+        """The optimiser's state at z. L-BFGS keeps the loss and gradient at its current point
+        in its state (its line search computes them at the next one), so the start computes
+        them once here: every iteration then reads them, and one program serves all
+        iterations (a separate first iteration compiled a second copy of the line search,
+        about 40 s for the 100-point test twin)."""
+        state = transform.init(z)
+        if stored:
+            value, gradient = jax.value_and_grad(functools.partial(loss_of_z, data=data, bases=bases))(z)
+            state = optax.tree_utils.tree_set(state, value=value, grad=gradient)
+        # optax's init leaves some scalars weakly typed, its update returns them strongly typed:
+        # matching the types here keeps the second iteration from compiling `iterate` again
+        return jax.tree.map(lambda leaf: jnp.asarray(leaf, dtype=leaf.dtype), state)
 
-    def iterate(z, state, data, bases, stored):
-        """One optimiser step from z. With `stored` (L-BFGS after its first step) the loss and
-        gradient at z are the ones its line search kept: reading them, rather than using
-        optax.value_and_grad_from_state, avoids a lax.cond that vmap would turn into an
-        always-evaluated second simulation."""
+    def iterate(z, state, data, bases):
+        """One optimiser step from z. L-BFGS reads the loss and gradient at z from its state
+        (rather than optax.value_and_grad_from_state, whose lax.cond vmap would turn into an
+        always-evaluated second simulation)."""
         loss = functools.partial(loss_of_z, data=data, bases=bases)
         if stored:
             value = optax.tree_utils.tree_get(state, "value")
             gradient = optax.tree_utils.tree_get(state, "grad")
-        else:
-            value, gradient = jax.value_and_grad(loss)(z)
-        if optimizer_name == "lbfgs":
             updates, state = transform.update(gradient, state, z, value=value, grad=gradient, value_fn=loss)
         else:
+            value, gradient = jax.value_and_grad(loss)(z)
             updates, state = transform.update(gradient, state, z)
         return optax.apply_updates(z, updates), state, value, jnp.max(jnp.abs(gradient))
 
-    first = functools.partial(iterate, stored=False)
-    return start, first, functools.partial(iterate, stored=optimizer_name == "lbfgs")
+    return start, iterate
 
 
 def make_optimizer(name, learning_rate):
@@ -351,16 +354,15 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
         state = problem.start(z0, data, bases)
         run = Progress(0, np.asarray(z0), np.full(count, np.inf), np.zeros(count, bool), [""] * count,
                        [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(state)], [], [], [], [], [], [],
-                       count * len(experiments) if optimizer == "lm" else 0, np.array(z0), np.full(count, np.inf))
+                       count * len(experiments) if optimizer in ("lm", "lbfgs") else 0, np.array(z0), np.full(count, np.inf))
     z = jnp.asarray(run.z, dtype)
     saved = copy.deepcopy(run)          # the last complete iteration: what an interrupt keeps
     bar = tqdm(total=max_iterations, initial=run.iteration, unit="it", disable=not progress, desc="calibrate")
     try:
         while run.iteration < max_iterations and not run.done.all():
             tick = clock.monotonic()
-            step = problem.first if run.iteration == 0 or problem.iterate is None else problem.iterate
             moved = np.asarray(state.accepted) if optimizer == "lm" else np.ones(count, bool)
-            new_z, new_state, value, gradient_norm = step(z, state, data, bases)
+            new_z, new_state, value, gradient_norm = problem.iterate(z, state, data, bases)
             value, gradient_norm = np.asarray(value), np.asarray(gradient_norm)
             running = ~run.done
             run.evaluations += int(np.sum(running)) * len(experiments) * (1 + _linesearch_steps(new_state, optimizer))

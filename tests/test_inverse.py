@@ -213,7 +213,7 @@ def test_a_calibration_interrupted_in_its_first_iteration_resumes(tmp_path, monk
         def stop(*_):
             raise KeyboardInterrupt
 
-        return dataclasses.replace(built(*arguments), first=stop)
+        return dataclasses.replace(built(*arguments), iterate=stop)
 
     checkpoint = tmp_path / "fit.checkpoint.npz"
     monkeypatch.setattr(calibration, "compiled_problem", interrupted)
