@@ -143,14 +143,16 @@ def test_multistart_batch_matches_separate_runs():
 
 
 def test_levenberg_marquardt_starts_run_vmapped_exactly_as_alone():
-    # (That LM and L-BFGS reach the same optimum from a far start is measured in
+    # A start's path must not depend on the other starts of its batch: each start of
+    # [WRONG, other] follows, to round-off, its path in a batch of copies of itself (one compiled
+    # batch size). (That LM and L-BFGS reach the same optimum from a far start is measured in
     # benchmarks/calibration_study.py, too slow for the tests.)
     sim = twin_simulation()
     observations = twin_observations(noise=1e-5, seed=2)
     other = {"sand.friction_angle": 20.0, "sand.fluidity": 8.0, "sand.exponent": 1.5}
     together = inverse.calibrate(sim, observations, FIT, starts=[WRONG, other], max_iterations=3, progress=False)
     for index, start in enumerate([WRONG, other]):
-        alone = inverse.calibrate(sim, observations, FIT, starts=[start], max_iterations=3, progress=False)
+        alone = inverse.calibrate(sim, observations, FIT, starts=[start, start], max_iterations=3, progress=False)
         np.testing.assert_allclose(together.history["loss"][:, index], alone.history["loss"][:, 0], rtol=1e-10)
     assert np.all(together.history["loss"][-1] < together.history["loss"][0])
 
