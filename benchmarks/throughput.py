@@ -434,8 +434,7 @@ Taichi kernel is called {STEPS_PER_CALL} times (one step each) and then `ti.sync
 the initial state untimed. Its particle-to-grid scatters (P2G and the MUSL re-map) run
 serially, without atomics, which on two cores beat the parallel loop with atomic adds; the
 "atomic scatters" row is that idiomatic parallel version. jaxmpm's calls also do work the kernel
-does not: the FLIP increment multiplied by 0, the finiteness and left-the-grid checks and the two
-probes of each step. Every case runs in its own process; {REFERENCE_ROUNDS} rounds run the cases
+does not: the finiteness and left-the-grid checks and the two probes of each step. Every case runs in its own process; {REFERENCE_ROUNDS} rounds run the cases
 in turn; best and median are over all timed calls of all rounds; the first call of each process
 (median over the rounds: jaxmpm compiles in it, Taichi compiles or loads its offline kernel
 cache) is not among them.

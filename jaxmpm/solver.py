@@ -383,8 +383,7 @@ def velocity_gradient(stencil, velocity, field, structure, positions):
     Sulsky & Schreyer 1996)."""
     support = stencil.weights.shape[1]
     nodal = gather_from_nodes(structure.layout, stencil.base, velocity, support, field)
-    along_x, along_y = stencil.gradients
-    in_plane = [sum_over_stencil(nodal[..., row] * along) for row in range(2) for along in (along_x, along_y)]
+    in_plane = [sum_over_stencil(nodal[..., row] * slope) for row in range(2) for slope in stencil.gradients]   # L_xx, L_xy, L_yx, L_yy
     zero = jnp.zeros_like(in_plane[0])
     hoop = zero
     if structure.axisymmetric:
