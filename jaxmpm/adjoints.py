@@ -12,19 +12,27 @@ differentiated in forward mode, which the Levenberg-Marquardt Jacobians (`jax.jv
 `linear_call` primitive carries a custom transpose and keeps forward mode (its tangent is the
 same linear map), but JAX 0.10 gives it no batching rule; `_batch_linear_call` below adds one
 (vmap the map and its transpose alike), so `jax.vmap` over calibration starts works too.
+`linear_call` lives in JAX's private modules: if a JAX release moves it, the maps fall back to
+their plain forward definitions (same values and derivatives, XLA's slower transpose).
 """
 
 import jax
 import jax.numpy as jnp
-from jax._src import core
-from jax._src.custom_derivatives import linear_call, linear_call_p
-from jax._src.interpreters import batching
+
+try:
+    from jax._src import core
+    from jax._src.custom_derivatives import linear_call, linear_call_p
+    from jax._src.interpreters import batching
+except ImportError:          # pragma: no cover - a JAX without these private modules
+    linear_call = None
 
 
 def paired_linear(forward, transpose):
     """f(residuals, linear) = forward(residuals, linear), linear in `linear`, whose transpose
     (for reverse mode) is transpose(residuals, cotangent). `residuals` (integer indices here)
     carry no derivative."""
+    if linear_call is None:
+        return forward
 
     def call(residuals, linear):
         return linear_call(forward, transpose, residuals, linear)
@@ -64,4 +72,5 @@ def _batch_linear_call(args, axes, *, callee, transpose_thunk, num_callee_consts
     return out, [0] * len(out)
 
 
-batching.primitive_batchers[linear_call_p] = _batch_linear_call
+if linear_call is not None:
+    batching.primitive_batchers[linear_call_p] = _batch_linear_call
