@@ -483,14 +483,10 @@ def machine_info() -> str:
 
 
 def write_section(name: str, body: str):
-    begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
-    section = f"{begin}\n{body}\n{end}"
-    doc = DOC.read_text() if DOC.exists() else "# Stability at the extremes\n"
-    if begin in doc and end in doc:
-        doc = re.sub(re.escape(begin) + ".*?" + re.escape(end), lambda _: section, doc, flags=re.S)
-    else:
-        doc = doc.rstrip() + "\n\n" + section + "\n"
-    DOC.write_text(doc)
+    """Replace (or append) the part of docs/stability.md between this section's markers."""
+    from throughput import write_section as write_between
+
+    write_between(f"<!-- {name}:begin -->", f"<!-- {name}:end -->", body, DOC)
 
 
 def main():
