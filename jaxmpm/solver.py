@@ -110,6 +110,12 @@ class Structure:
         return any(block.kinematics != "free" for block in self.bodies)
 
     @property
+    def has_bonded_rigid_bodies(self):
+        rigid = {block.field for block in self.blocks_of("rigid")}
+        return any(interface.contact is None and {interface.first, interface.second} & rigid
+                   for interface in self.interfaces)
+
+    @property
     def has_contact(self):
         return any(interface.contact is not None for interface in self.interfaces)
 
@@ -267,7 +273,8 @@ def kinematic_motions(params, state, structure, time_new):
     step's contact.
 
     A rigid body's contact velocity is V + dt (g + F / M) and spin omega + dt T / J, with the
-    force F and torque T of the last step. This predictor makes the nodes of a body resting on
+    force F and torque T of its contact pairs in the last step (bonded interfaces are solved
+    in the step itself: `bonded_rigid_motions`). This predictor makes the nodes of a body resting on
     another move exactly with it once the force is steady; meeting the free velocity V + dt g
     instead left a gap of g dt^2 per step between a resting rigid footing and the sand under
     it (0.3 mm in 0.3 s), with the contact still active.
@@ -290,6 +297,49 @@ def kinematic_motions(params, state, structure, time_new):
     return motions
 
 
+def bonded_rigid_motions(structure, motions, mass, velocity, occupied, positions):
+    """Rigid bodies bonded to free fields (an interface that is not a contact pair) move with
+    the sand they hold: the contact velocity V and spin omega solve the momentum balance of the
+    body and the bonded nodes together,
+
+        M (V - V*) + sum_I m_I (V + omega x r_I - v_I) = 0
+        J (omega - omega*) + sum_I r_I x m_I (V + omega x r_I - v_I) = 0,
+
+    a 3 x 3 symmetric positive definite system over the nodes where both fields have mass
+    (m_I, v_I: the free field's mass and trial velocity, r_I = x_I - c; V*, omega*: the motion
+    predicted from the contact pairs alone). Predicting the bonded force from the last step
+    instead, as for contact pairs, feeds back with gain -sum m_I / M: it diverged as soon as
+    the bonded sand outweighed the body (bspline2's wider stencil, docs/stability.md)."""
+    bonded = {}
+    for interface in structure.interfaces:
+        if interface.contact is None and (interface.kinematic_first or interface.kinematic_second):
+            rigid, free = (interface.first, interface.second) if interface.kinematic_first else (interface.second, interface.first)
+            bonded.setdefault(rigid, []).append(free)
+    motions = dict(motions)
+    for block in structure.blocks_of("rigid"):
+        if block.field not in bonded:
+            continue
+        body = motions[block.name]
+        arm = positions - body.centre
+        held = sum(jnp.where(occupied[block.field] & occupied[free], mass[free], 0.0) for free in bonded[block.field])
+        momentum = sum(jnp.where((occupied[block.field] & occupied[free])[..., None], mass[free][..., None] * velocity[free], 0.0)
+                       for free in bonded[block.field])
+        held_mass, moment_x, moment_y = jnp.sum(held), jnp.sum(held * arm[..., 0]), jnp.sum(held * arm[..., 1])
+        held_inertia = jnp.sum(held * (arm[..., 0] * arm[..., 0] + arm[..., 1] * arm[..., 1]))
+        zero = jnp.zeros_like(held_mass)
+        system = jnp.stack([
+            jnp.stack([body.mass + held_mass, zero, -moment_y]),
+            jnp.stack([zero, body.mass + held_mass, moment_x]),
+            jnp.stack([-moment_y, moment_x, body.inertia + held_inertia]),
+        ])
+        total = jnp.sum(momentum, axis=(0, 1))
+        right = jnp.concatenate([body.mass * body.contact_velocity + total,
+                                 (body.inertia * body.contact_spin + jnp.sum(cross(arm, momentum)))[None]])
+        solved = jnp.linalg.solve(system, right)
+        motions[block.name] = body._replace(contact_velocity=solved[:2], contact_spin=solved[2])
+    return motions
+
+
 def impose_kinematic_fields(velocity, structure, motions, positions):
     """Node velocities of prescribed fields set to their velocity, of rigid fields to their
     contact motion V + omega x (x_I - c)."""
@@ -302,10 +352,13 @@ def impose_kinematic_fields(velocity, structure, motions, positions):
     return velocity
 
 
-def received_impulses(structure, impulses):
-    """{field: (nx, ny, 2) total impulse the field received from all interfaces}."""
+def received_impulses(structure, impulses, contacts_only=False):
+    """{field: (nx, ny, 2) total impulse the field received from all interfaces} (from the
+    contact pairs alone with `contacts_only`)."""
     received = {}
     for interface, impulse in zip(structure.interfaces, impulses):
+        if contacts_only and interface.contact is None:
+            continue
         received[interface.first] = received.get(interface.first, 0.0) + impulse
         received[interface.second] = received.get(interface.second, 0.0) - impulse
     return received
@@ -329,14 +382,25 @@ def grid_to_particles(particles, stencil, velocity_old, velocity_new, field, tra
     return particles.replace(x=particles.x + dt * grid_velocity, v=velocity)
 
 
-def move_kinematic_bodies(state, start, structure, motions, received, positions):
+def resultant(impulse, arm, dt):
+    """(force (2,), torque ()) of nodal impulses (nx, ny, 2) or None, over one step dt, about
+    the point at `arm` (nx, ny, 2) from every node."""
+    if impulse is None:
+        return jnp.zeros(2, arm.dtype), jnp.zeros((), arm.dtype)
+    return jnp.sum(impulse, axis=(0, 1)) / dt, jnp.sum(cross(arm, impulse)) / dt
+
+
+def move_kinematic_bodies(state, start, structure, motions, impulses, positions):
     """Prescribed points move at their velocity from their positions `start` (N, 2) at the
     start of the step; rigid bodies take the impulses their fields received
-    (dV = sum J / M, d omega = sum (x_I - c) x J / J_c) and move as one body.
+    (dV = sum J / M, d omega = sum (x_I - c) x J / J_c) and move as one body, and keep the
+    force and torque of their contact pairs for the next step's prediction.
 
     Returns (state, reactions {prescribed body: (2,) force that kept it on its path})."""
     particles, dt = state.particles, structure.dt
     x, v, rigid = particles.x, particles.v, dict(state.rigid)
+    received = received_impulses(structure, impulses)
+    pushed = received_impulses(structure, impulses, contacts_only=True)
     gravity = jnp.asarray(structure.gravity, x.dtype)
     reactions = {}
     for block in structure.blocks_of("prescribed"):
@@ -350,13 +414,10 @@ def move_kinematic_bodies(state, start, structure, motions, received, positions)
         v = v.at[block.points].set(jnp.broadcast_to(after, (count, 2)))
     for block in structure.blocks_of("rigid"):
         body, motion = motions[block.name], state.rigid[block.name]
-        impulse = received.get(block.field)
-        force, torque = jnp.zeros_like(body.free_velocity), jnp.zeros_like(motion.spin)
-        if impulse is not None:
-            force = jnp.sum(impulse, axis=(0, 1)) / dt
-            torque = jnp.sum(cross(positions - body.centre, impulse)) / dt
+        force, torque = resultant(received.get(block.field), positions - body.centre, dt)
         velocity = body.free_velocity + dt * force / body.mass
         spin = motion.spin + dt * torque / body.inertia
+        force, torque = resultant(pushed.get(block.field), positions - body.centre, dt)
         turn = dt * spin
         cos, sin = jnp.cos(turn), jnp.sin(turn)
         arm = start[block.points] - body.centre
@@ -454,11 +515,13 @@ def make_step(structure: Structure):
         velocity_old, velocity_new = jax.named_call(update_grid_velocity, name="update_grid")(
             nodes, dt, structure.damping, constrain, floor
         )
-        impulses, received, motions, positions = [], {}, {}, None
+        impulses, motions, positions = [], {}, None
         if structure.has_kinematic_bodies:
             time_new = (state.step + 1).astype(particles.x.dtype) * dt
             positions = node_positions(layout, particles.x.dtype)
             motions = kinematic_motions(params, state, structure, time_new)
+            if structure.has_bonded_rigid_bodies:
+                motions = bonded_rigid_motions(structure, motions, nodes.mass, velocity_new, nodes.mass > floor, positions)
             velocity_new = impose_kinematic_fields(velocity_new, structure, motions, positions)
         if structure.interfaces:
             frictions = {name: values["friction"] for name, values in params.get("contacts", {}).items()}
@@ -466,13 +529,12 @@ def make_step(structure: Structure):
                 structure.interfaces, nodes.mass, velocity_new, nodes.mass_gradient, frictions, nodes.mass > floor
             )
             velocity_new = constrain(velocity_new)
-            received = received_impulses(structure, impulses)
         start = particles.x
         particles = jax.named_call(grid_to_particles, name="grid_to_particles")(
             particles, stencil, velocity_old, velocity_new, field, structure.transfer, structure.flip, dt, layout
         )
         state, reactions = move_kinematic_bodies(
-            state.replace(particles=particles), start, structure, motions, received, positions
+            state.replace(particles=particles), start, structure, motions, impulses, positions
         )
         particles = state.particles
         if structure.update == "musl":

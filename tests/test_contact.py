@@ -246,6 +246,77 @@ def test_rigid_body_comes_to_rest_on_sand():
     assert np.ptp(settlement[late]) < 0.05 * abs(settlement[-1])
 
 
+def test_a_rigid_plate_bonded_to_a_lighter_block_drags_it_along():
+    # No gravity, nothing else touching: a rigid plate launched at v0, bonded (no contact
+    # pair) to a block at rest that outweighs it 12:1, on bspline2 (the wide stencil on which
+    # predicting the bonded force from the last step diverged). Momentum is kept exactly,
+    # M V + sum m_p v_p = M v0, and the two move on together at M v0 / (M + m) (perfectly
+    # inelastic impact), the plate oscillating about it as the block rings.
+    scene = Scene(
+        name="drag",
+        grid=Grid(size=(1.0, 0.6), cell=0.05, boundaries=Boundaries("free", "free", "free", "free")),
+        materials={"soft": LinearElastic(density=2000.0, young=1e6, poisson=0.3),
+                   "plate": LinearElastic(density=1000.0, young=1e9, poisson=0.3)},
+        bodies=(
+            Body("block", "soft", Rectangle((0.3, 0.2), (0.6, 0.4))),
+            Body("plate", "plate", Rectangle((0.6, 0.2), (0.65, 0.4)), velocity=(0.2, 0.0),
+                 kinematics=Kinematics("rigid")),
+        ),
+        gravity=(0.0, 0.0),
+        duration=0.3,
+        output_every=0.01,
+        numerics=Numerics(shape="bspline2", transfer="apic"),
+        probes=(Probe("plate", "body_displacement", body="plate"),),
+    )
+    sim = Simulation(scene)
+    result = sim.run(progress=False)
+    state = sim.final_state()
+    plate, block = 1000.0 * 0.05 * 0.2, 2000.0 * 0.3 * 0.2
+    particles = state.particles
+    free = sim.structure.bodies[0].points
+    momentum = plate * np.asarray(state.rigid["plate"].velocity) + np.asarray(
+        particles.mass[free]) @ np.asarray(particles.v[free])
+    np.testing.assert_allclose(momentum, [plate * 0.2, 0.0], rtol=0, atol=1e-10 * plate * 0.2)
+    shift = np.asarray(result.probes["plate"][:, 0])
+    times = np.asarray(result.time)
+    late = times >= 0.1
+    speed = np.polyfit(times[late], shift[late], 1)[0]
+    assert speed == pytest.approx(plate * 0.2 / (plate + block), rel=0.05)
+
+
+def test_a_light_rigid_footing_bonded_to_sand_comes_to_rest():
+    # A rigid footing ten times lighter than the sand it is bonded to (no contact pair),
+    # off-centre so that it may turn, released on bspline2: before the bonded interface was
+    # solved with the body (solver.bonded_rigid_motions) this left the grid within 14 steps.
+    # It settles and stops: velocity and spin decay, sideways motion stays a fraction of the
+    # settlement.
+    scene = Scene(
+        name="footing",
+        grid=Grid(size=(0.6, 0.3), cell=0.025, boundaries=Boundaries("slip", "slip", "fixed", "free")),
+        materials={
+            "sand": DruckerPrager(density=1800.0, young=2e6, poisson=0.3, friction_angle=30.0),
+            "block": LinearElastic(density=2000.0, young=5e7, poisson=0.2),
+        },
+        bodies=(
+            Body("sand", "sand", Rectangle((0.0, 0.0), (0.6, 0.15)), initial_stress=Geostatic("jaky")),
+            Body("footing", "block", Rectangle((0.1, 0.15), (0.2, 0.2)), kinematics=Kinematics("rigid")),
+        ),
+        duration=0.3,
+        output_every=0.05,
+        numerics=Numerics(shape="bspline2", transfer="apic", damping=0.1),
+        probes=(Probe("settlement", "body_displacement", body="footing"),
+                Probe("turn", "body_rotation", body="footing")),
+    )
+    sim = Simulation(scene)
+    result = sim.run(progress=False)
+    motion = sim.final_state().rigid["footing"]
+    settlement = np.asarray(result.probes["settlement"])
+    assert settlement[-1, 1] < 0.0
+    assert np.max(np.abs(settlement[:, 0])) < 0.2 * abs(settlement[-1, 1])
+    assert float(np.linalg.norm(motion.velocity)) < 1e-3
+    assert abs(float(motion.spin)) < 1e-2
+
+
 # --------------------------------------------------------------------------- active earth pressure
 
 
