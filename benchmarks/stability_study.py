@@ -15,8 +15,8 @@ sweeps   the default numerics (preset "balanced") on the collapse and on a rigid
          resting on a geostatic sand layer, with the friction angle 5-50 degrees, Young's
          modulus 1e5-1e8 Pa and Perzyna gamma*dt 1e-8-1e8; the Perzyna result is placed between
          the elastic and the rate-independent (Drucker-Prager) one.
-bonded   the rigid footing bonded to the sand (no contact pair) for each shape function: a
-         solver instability (docs/stability.md).
+bonded   the rigid footing bonded to the sand (no contact pair) for each shape function (it
+         was unstable with bspline2 until the bonded interface was solved with the body).
 float32  an undamped vibrating bar over 1e5 steps in float32 and float64: energy drift, and
          the derivative of the tip displacement with respect to Young's modulus (forward mode).
 
@@ -112,8 +112,8 @@ def footing(cfl=0.4, duration=0.2, sand=None, **choices):
     """A rigid strip footing, 0.1 m wide and 0.05 m high (rho = 20000: 9.8 kPa on the sand),
     resting on a 0.4 x 0.15 m layer of sand in its geostatic state through a rough contact
     (mu = 0.5), released at t = 0 (16 x 10 cells of 25 mm; examples/calibrate_twin_scene.toml
-    with a rigid footing). Bonded (no [[contacts]]), this footing is unstable with bspline2:
-    see docs/stability.md."""
+    with a rigid footing). Bonded (no [[contacts]]), it was unstable with bspline2 before
+    solver.bonded_rigid_motions (docs/stability.md)."""
     import jaxmpm
 
     material = {"model": "drucker_prager", "density": 1800.0, "young": 2.0e6, "poisson": 0.3,
