@@ -1,6 +1,6 @@
 """Reverse-mode memory against rollout length: checkpointed segments vs one long scan.
 
-    python benchmarks/gradient_memory.py [--no-write]
+    python benchmarks/gradient_memory.py [--no-write] [--large]
 
 For the elastic block of benchmarks/throughput.py (2,500 points here, float64) and rollouts of
 100 to 3,200 steps, compile jax.grad of a probe-history loss and read XLA's temporary buffer
@@ -8,6 +8,9 @@ size (`memory_analysis().temp_size_in_bytes`) for
 - the default `Checkpointing()` (segments of ceil(sqrt(steps)) steps): expected ~ sqrt(steps);
 - `Checkpointing(segment=steps)` (one segment: every step checkpointed, but all T states kept
   for the backward pass): expected ~ steps.
+`--large` adds the case the speed goal names: 16,384 points of Drucker-Prager sand, bspline2 +
+APIC, float32, 200 to 10,000 steps, default checkpointing (temporary, argument and output
+buffers of the compiled gradient).
 Nothing is run, only compiled, so the figures do not depend on the machine's load. Writes its
 table to docs/benchmarks.md between marker comments.
 """
@@ -29,7 +32,9 @@ from throughput import block_scene, write_section  # noqa: E402
 import jaxmpm  # noqa: E402
 
 BEGIN, END = "<!-- gradient_memory:begin -->", "<!-- gradient_memory:end -->"
+LARGE_BEGIN, LARGE_END = "<!-- gradient_memory_large:begin -->", "<!-- gradient_memory_large:end -->"
 STEPS = (100, 400, 1600, 3200)
+LARGE_STEPS = (200, 1000, 10_000)
 
 
 def temporary_megabytes(steps, checkpointing):
@@ -43,10 +48,46 @@ def temporary_megabytes(steps, checkpointing):
     return compiled.memory_analysis().temp_size_in_bytes / 1e6, sim.point_count
 
 
+def large_case_megabytes(steps):
+    """(temporary, arguments + outputs) MB of the gradient for 16,384 points, float32, DP, bspline2."""
+    scene = block_scene(128, "float32", steps, "drucker_prager", "bspline2", "apic")
+    sim = jaxmpm.Simulation(scene)
+
+    def loss(young):
+        probes = sim.probes(jaxmpm.with_values(sim.params, {"block.young": young}))
+        return jax.numpy.sum(probes["top"]) + jax.numpy.sum(probes["centre_of_mass"])
+
+    memory = jax.jit(jax.grad(loss)).lower(jax.numpy.float32(1.0e6)).compile().memory_analysis()
+    return memory.temp_size_in_bytes / 1e6, (memory.argument_size_in_bytes + memory.output_size_in_bytes) / 1e6
+
+
+def large_table():
+    rows = []
+    for steps in LARGE_STEPS:
+        temporary, edges = large_case_megabytes(steps)
+        rows.append(f"| {steps} | {temporary:.1f} MB | {edges:.2f} MB |")
+        print(rows[-1], flush=True)
+    return "\n".join([
+        "16,384 points of Drucker-Prager sand, bspline2 + APIC, float32 (the 16k block of the throughput "
+        f"table), default `Checkpointing()`, measured {datetime.date.today()} (JAX {jax.__version__}):",
+        "",
+        "| steps | XLA temporary memory of the gradient | arguments + outputs |",
+        "|---:|---:|---:|",
+        *rows,
+    ])
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--no-write", action="store_true")
+    parser.add_argument("--large", action="store_true", help="the 16k-point float32 case only")
     arguments = parser.parse_args()
+    if arguments.large:
+        jax.config.update("jax_enable_x64", False)
+        text = large_table()
+        if not arguments.no_write:
+            write_section(LARGE_BEGIN, LARGE_END, text)
+        return
     rows = []
     for steps in STEPS:
         sqrt_mb, points = temporary_megabytes(steps, jaxmpm.Checkpointing())

@@ -117,15 +117,20 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
 
     batched = functools.partial(jax.vmap, in_axes=(0, 0, None, None))
     if optimizer_name == "lm":
-        start, iterate = levenberg_marquardt_iteration(residuals_of_z, count)
-        compile_iteration = jax.jit          # forward mode: no reverse-mode XLA options needed
+        iterate = jax.jit(batched(levenberg_marquardt_iteration(residuals_of_z, count)))   # forward mode only
+
+        def start(z, data, bases):
+            """The first iteration's program evaluates the starts (no second compilation)."""
+            size = jax.eval_shape(residuals_of_z, z[0], data, bases).shape[0]
+            unevaluated = jax.vmap(lambda point: levenberg_marquardt.unevaluated(point, size))(z)
+            return iterate(z, unevaluated, data, bases)[1]
     else:
-        start, iterate = optax_iteration(loss_of_z, optimizer_name, learning_rate)
-        compile_iteration = jit_reverse_mode
+        first, step = optax_iteration(loss_of_z, optimizer_name, learning_rate)
+        start, iterate = jit_reverse_mode(jax.vmap(first, in_axes=(0, None, None))), jit_reverse_mode(batched(step))
     problem = CompiledProblem(
         residuals=residuals,
-        start=compile_iteration(jax.vmap(start, in_axes=(0, None, None))),
-        iterate=compile_iteration(batched(iterate)),
+        start=start,
+        iterate=iterate,
         losses=jax.jit(jax.vmap(loss_of_z, in_axes=(0, None, None))),
     )
     cache[key] = problem
@@ -133,11 +138,9 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
 
 
 def levenberg_marquardt_iteration(residuals_of_z, count):
-    """(start, iterate) of Levenberg–Marquardt with forward-mode Jacobians (see
-    `inverse.levenberg_marquardt`); losses and gradients reported as L = r.r / (2 M)."""
-
-    def start(z, data, bases):
-        return levenberg_marquardt.init(functools.partial(residuals_of_z, data=data, bases=bases), z)
+    """iterate(z, state, data, bases) of Levenberg–Marquardt with forward-mode Jacobians (see
+    `inverse.levenberg_marquardt`); losses and gradients reported as L = r.r / (2 M), those of
+    the state it starts from (zeros for an unevaluated one)."""
 
     def iterate(z, state, data, bases):
         del z                       # the state holds z with its residuals and Jacobian
@@ -146,7 +149,7 @@ def levenberg_marquardt_iteration(residuals_of_z, count):
         new_state = levenberg_marquardt.step(functools.partial(residuals_of_z, data=data, bases=bases), state)
         return new_state.z, new_state, value, jnp.max(jnp.abs(gradient))
 
-    return start, iterate
+    return iterate
 
 
 def optax_iteration(loss_of_z, optimizer_name, learning_rate):
@@ -414,27 +417,39 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
     for s in range(count):
         if not run.reason[s]:
             run.reason[s] = f"max_iterations = {max_iterations} reached"
-    return _finish(experiments, groups, space, problem, data, bases, run, start_values, optimizer, started, warning)
+    return _finish(experiments, groups, space, problem, data, bases, run, state, start_values, optimizer, started,
+                   warning)
 
 
-def _finish(experiments, groups, space, problem, data, bases, run, start_values, optimizer, started, warning):
+def _finish(experiments, groups, space, problem, data, bases, run, state, start_values, optimizer, started, warning):
     """The Fit: each start's answer is the better of its last point and the best finite point
     it passed through (the last one unless it went astray); the best start's covariance and
-    every experiment's best-fit probes."""
+    every experiment's best-fit probes. Levenberg–Marquardt's state holds the residuals and
+    Jacobian of its last point, and its history the loss of every point it passed through, so
+    nothing is simulated again for them (each costs a compilation of the whole problem)."""
     dtype = experiments[0].sim.dtype
     last_z, best_z = jnp.asarray(run.z, dtype), jnp.asarray(run.best_z, dtype)
-    last_losses = np.asarray(problem.losses(last_z, data, bases))
-    passed_losses = np.asarray(problem.losses(best_z, data, bases))
-    take_last = np.isfinite(last_losses) & ~(passed_losses < last_losses)
+    if optimizer == "lm":
+        count = sum(e.observations.count for e in experiments)
+        last_losses = 0.5 * np.sum(np.asarray(state.residuals) ** 2, axis=1) / count
+        passed_losses = np.asarray(run.best_loss)
+    else:
+        last_losses = np.asarray(problem.losses(last_z, data, bases))
+        passed_losses = np.asarray(problem.losses(best_z, data, bases))
+    at_best = np.all(np.asarray(run.best_z) == np.asarray(run.z), axis=1)    # the same point: no rounding decides
+    take_last = np.isfinite(last_losses) & (at_best | ~(passed_losses < last_losses))
     final_z = jnp.where(jnp.asarray(take_last)[:, None], last_z, best_z)
     final_losses = np.where(take_last, last_losses, passed_losses)
     if not np.any(np.isfinite(final_losses)):
         raise SimulationError("every start of the calibration went non-finite; narrow the bounds or change the starts.")
     best = int(np.nanargmin(np.where(np.isfinite(final_losses), final_losses, np.nan)))
     values = np.asarray(space.to_physical(final_z[best]))
+    linearization = None
+    if optimizer == "lm" and take_last[best]:
+        linearization = physical_linearization(space, final_z[best], state.residuals[best], state.jacobian[best])
     covariance, jacobian = gauss_newton(
         functools.partial(problem.residuals, data=data, bases=bases), values,
-        noise_known=all(e.observations.noise_known for e in experiments),
+        noise_known=all(e.observations.noise_known for e in experiments), linearization=linearization,
     )
     runs, warnings_found = [], [warning] if warning else []
     for index, (experiment, base) in enumerate(zip(experiments, experiment_bases(groups, bases, len(experiments)))):
@@ -472,6 +487,16 @@ def _finish(experiments, groups, space, problem, data, bases, run, start_values,
         scene_toml=experiments[0].sim.scene.to_toml(),
         warning="; ".join(warnings_found),
     )
+
+
+def physical_linearization(space, z, residuals, jacobian):
+    """(r, dr/dtheta) from Levenberg–Marquardt's (r, dr/dz) at z: the bounds' transforms act
+    on each parameter alone, so dr/dtheta_k = (dr/dz_k) / (dtheta_k/dz_k); None where that
+    derivative vanishes (a value pinned at a bound), and the Jacobian is then taken afresh."""
+    slopes = np.diag(np.asarray(jax.jacfwd(space.to_physical)(z)))
+    if not np.all(np.isfinite(slopes) & (np.abs(slopes) > np.finfo(slopes.dtype).tiny)):   # no subnormal divisor
+        return None
+    return np.asarray(residuals), np.asarray(jacobian) / slopes[None, :]
 
 
 def cells_crossed(sim, final_state, initial_state) -> int:

@@ -21,8 +21,9 @@ from inverse.experiments import window_mean, window_steps
 from jaxmpm.files import atomic_path
 
 
-def gauss_newton(residuals, values, noise_known):
-    """(covariance (P, P), jacobian (M, P)) of the residual function at `values`.
+def gauss_newton(residuals, values, noise_known, linearization=None):
+    """(covariance (P, P), jacobian (M, P)) of the residual function at `values` (or of its
+    `linearization` (r (M,), jacobian (M, P)) there, when the optimiser already holds it).
 
     The Jacobian's columns are scaled by |theta| (so E ~ 1e7 and phi ~ 30 are comparable) and
     decomposed by SVD. A direction whose singular value is below sqrt(eps) of the largest is not
@@ -30,8 +31,9 @@ def gauss_newton(residuals, values, noise_known):
     NaN correlations), rather than the zero a pseudo-inverse would report.
     """
     values = jnp.asarray(values)
-    jacobian = np.asarray(jax.jacfwd(residuals)(values))
-    r = np.asarray(residuals(values))
+    if linearization is None:
+        linearization = residuals(values), jax.jacfwd(residuals)(values)
+    r, jacobian = (np.asarray(part) for part in linearization)
     count, size = jacobian.shape
     variance = 1.0 if noise_known else float(r @ r) / max(count - size, 1)
     scale = np.where(np.abs(np.asarray(values)) > 0, np.abs(np.asarray(values)), 1.0)

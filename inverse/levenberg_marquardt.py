@@ -24,7 +24,9 @@ the optimum can jump into another valley of a misfit that is not quadratic (meas
 small heap twin of the tests lands at phi = 11.7 instead of 20 with lambda_0 = 1e-3 and no cap).
 
 The trial point is evaluated with its Jacobian (one forward pass with tangents), so an
-accepted step needs no further pass. Everything is a pure function of arrays, vmapped over
+accepted step needs no further pass. A state made by `unevaluated(z)` holds no residuals yet:
+its step evaluates z itself and takes it, so the start and every iteration are one compiled
+program (a separate start compiled the whole simulation with its tangents a second time). Everything is a pure function of arrays, vmapped over
 starts, and its state is a tuple of arrays that a checkpoint file can hold.
 """
 
@@ -44,7 +46,8 @@ DIAGONAL_FLOOR = 1e-12      # D_ii >= DIAGONAL_FLOOR * max D (a column of zeros 
 class LevenbergMarquardtState(NamedTuple):
     """z: (P,) current point; residuals: (M,) r(z); jacobian: (M, P) dr/dz at z; damping:
     lambda; growth: nu, the factor lambda grows by at the next rejection; accepted: whether
-    the last step moved z (False at the start)."""
+    the last step moved z (False at the start); evaluated: whether residuals and jacobian are
+    those of z (False only for `unevaluated`)."""
 
     z: jax.Array
     residuals: jax.Array
@@ -52,6 +55,7 @@ class LevenbergMarquardtState(NamedTuple):
     damping: jax.Array
     growth: jax.Array
     accepted: jax.Array
+    evaluated: jax.Array
 
 
 def residuals_and_jacobian(residual_fn, z):
@@ -64,8 +68,15 @@ def residuals_and_jacobian(residual_fn, z):
 
 def init(residual_fn, z) -> LevenbergMarquardtState:
     r, jacobian = residuals_and_jacobian(residual_fn, z)
+    return unevaluated(z, r.shape[0])._replace(residuals=r, jacobian=jacobian, evaluated=jnp.ones((), bool))
+
+
+def unevaluated(z, count) -> LevenbergMarquardtState:
+    """The state at z before its `count` residuals are computed; `step` evaluates z and takes
+    it (same shapes and dtypes as every later state)."""
     one = jnp.ones((), z.dtype)
-    return LevenbergMarquardtState(z, r, jacobian, INITIAL_DAMPING * one, 2.0 * one, jnp.zeros((), bool))
+    return LevenbergMarquardtState(z, jnp.zeros((count,), z.dtype), jnp.zeros((count, z.shape[0]), z.dtype),
+                                   INITIAL_DAMPING * one, 2.0 * one, jnp.zeros((), bool), jnp.zeros((), bool))
 
 
 def damped_step(state: LevenbergMarquardtState):
@@ -86,9 +97,10 @@ def damped_step(state: LevenbergMarquardtState):
 
 
 def step(residual_fn, state: LevenbergMarquardtState) -> LevenbergMarquardtState:
-    """One Levenberg–Marquardt iteration (see the module docstring)."""
+    """One Levenberg–Marquardt iteration (see the module docstring); from an `unevaluated`
+    state, the evaluation of z itself (taken if finite, the damping left at lambda_0)."""
     delta, predicted = damped_step(state)
-    trial = state.z + delta
+    trial = jnp.where(state.evaluated, state.z + delta, state.z)
     trial_r, trial_jacobian = residuals_and_jacobian(residual_fn, trial)
     cost = 0.5 * state.residuals @ state.residuals
     trial_cost = 0.5 * trial_r @ trial_r
@@ -96,11 +108,14 @@ def step(residual_fn, state: LevenbergMarquardtState) -> LevenbergMarquardtState
     ratio = (cost - trial_cost) / jnp.where(predicted > 0, predicted, jnp.inf)
     accept = finite & (predicted > 0) & (ratio > ACCEPT_RATIO)
     shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.where(accept, ratio, 0.0) - 1.0) ** 3)
-    return LevenbergMarquardtState(
+    stepped = LevenbergMarquardtState(
         z=jnp.where(accept, trial, state.z),
         residuals=jnp.where(accept, trial_r, state.residuals),
         jacobian=jnp.where(accept, trial_jacobian, state.jacobian),
         damping=jnp.where(accept, state.damping * shrink, state.damping * state.growth),
         growth=jnp.where(accept, 2.0, 2.0 * state.growth).astype(state.growth.dtype),
         accepted=accept,
+        evaluated=jnp.ones((), bool),
     )
+    started = state._replace(residuals=trial_r, jacobian=trial_jacobian, evaluated=jnp.ones((), bool))
+    return jax.tree_util.tree_map(lambda first, later: jnp.where(state.evaluated, later, first), started, stepped)

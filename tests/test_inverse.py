@@ -296,6 +296,31 @@ def test_gauss_newton_reports_an_unconstrained_direction_as_infinite():
     np.testing.assert_allclose(np.sqrt(covariance[2, 2]), 0.5, rtol=1e-12)
 
 
+def test_covariance_from_the_levenberg_marquardt_state_equals_a_fresh_jacobian():
+    # Levenberg-Marquardt holds dr/dz in the unconstrained coordinates; the Fit's covariance is
+    # built from it (no further simulation), which must equal the one from dr/dtheta taken by
+    # forward mode at the same point, for every kind of bound; a value pinned at a bound
+    # (dtheta/dz = 0 in floating point) falls back to the fresh Jacobian.
+    from inverse.calibrate import physical_linearization
+    from inverse.levenberg_marquardt import residuals_and_jacobian
+
+    params = {"materials": {"sand": {"a": 2.0, "b": 3.0, "c": -1.0, "d": 0.5}}}
+    space = ParameterSpace(params, {"sand.a": (1.0, 5.0), "sand.b": (0.0, None), "sand.c": (None, 0.0), "sand.d": (None, None)})
+
+    def residuals(theta):
+        return jnp.array([theta[0] * theta[1], jnp.sin(theta[2]) + theta[3], theta[0] ** 2 - theta[3], theta[1] + theta[2]])
+
+    z = space.to_unconstrained(jnp.array([2.0, 3.0, -1.0, 0.5]))
+    r, jacobian_z = residuals_and_jacobian(lambda z: residuals(space.to_physical(z)), z)
+    linearization = physical_linearization(space, z, r, jacobian_z)
+    values = space.to_physical(z)
+    held, _ = gauss_newton(residuals, values, noise_known=False, linearization=linearization)
+    fresh, _ = gauss_newton(residuals, values, noise_known=False)
+    np.testing.assert_allclose(held, fresh, rtol=1e-10)
+    pinned = z.at[0].set(60.0)            # sigmoid'(60) underflows to 0 relative to the range
+    assert physical_linearization(space, pinned, r, jacobian_z) is None
+
+
 def test_bounds_transforms_round_trip_and_stay_inside():
     params = {"materials": {"sand": {"a": 2.0, "b": 3.0, "c": -1.0, "d": 0.5}}}
     space = ParameterSpace(params, {"sand.a": (1.0, 5.0), "sand.b": (0.0, None), "sand.c": (None, 0.0), "sand.d": (None, None)})
