@@ -8,16 +8,21 @@ size (`memory_analysis().temp_size_in_bytes`) for
 - the default `Checkpointing()` (segments of ceil(sqrt(steps)) steps): expected ~ sqrt(steps);
 - `Checkpointing(segment=steps)` (one segment: every step checkpointed, but all T states kept
   for the backward pass): expected ~ steps.
-`--large` adds the case the speed goal names: 16,384 points of Drucker-Prager sand, bspline2 +
-APIC, float32, 200 to 10,000 steps, default checkpointing (temporary, argument and output
-buffers of the compiled gradient).
-Nothing is run, only compiled, so the figures do not depend on the machine's load. Writes its
-table to docs/benchmarks.md between marker comments.
+`--large` measures instead the case the speed goal names: 16,384 points of Drucker-Prager sand,
+bspline2 + APIC, float32, 200 to 10,000 steps, default checkpointing; `--run` also runs the
+10,000-step gradient once for its wall time and the process's peak resident memory (minutes).
+Otherwise nothing is run, only compiled, so the figures do not depend on the machine's load.
+Writes its table to docs/benchmarks.md between marker comments.
 """
 
 import argparse
 import datetime
+import math
+import os
+import platform
+import resource
 import sys
+import time
 from pathlib import Path
 
 import jax
@@ -30,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from throughput import block_scene, write_section  # noqa: E402
 
 import jaxmpm  # noqa: E402
+from jaxmpm.xla_options import reverse_mode_options  # noqa: E402
 
 BEGIN, END = "<!-- gradient_memory:begin -->", "<!-- gradient_memory:end -->"
 LARGE_BEGIN, LARGE_END = "<!-- gradient_memory_large:begin -->", "<!-- gradient_memory_large:end -->"
@@ -48,8 +54,9 @@ def temporary_megabytes(steps, checkpointing):
     return compiled.memory_analysis().temp_size_in_bytes / 1e6, sim.point_count
 
 
-def large_case_megabytes(steps):
-    """(temporary, arguments + outputs) MB of the gradient for 16,384 points, float32, DP, bspline2."""
+def large_case(steps, run):
+    """(XLA temporary MB, wall seconds of one gradient or None, peak RSS MB after it or None)
+    of the gradient for 16,384 points, float32, Drucker-Prager, bspline2 + APIC."""
     scene = block_scene(128, "float32", steps, "drucker_prager", "bspline2", "apic")
     sim = jaxmpm.Simulation(scene)
 
@@ -57,22 +64,31 @@ def large_case_megabytes(steps):
         probes = sim.probes(jaxmpm.with_values(sim.params, {"block.young": young}))
         return jax.numpy.sum(probes["top"]) + jax.numpy.sum(probes["centre_of_mass"])
 
-    memory = jax.jit(jax.grad(loss)).lower(jax.numpy.float32(1.0e6)).compile().memory_analysis()
-    return memory.temp_size_in_bytes / 1e6, (memory.argument_size_in_bytes + memory.output_size_in_bytes) / 1e6
+    young = jax.numpy.float32(1.0e6)
+    compiled = jax.jit(jax.grad(loss), compiler_options=reverse_mode_options()).lower(young).compile()
+    temporary = compiled.memory_analysis().temp_size_in_bytes / 1e6
+    if not run:
+        return temporary, None, None
+    start = time.perf_counter()
+    value = float(compiled(young))
+    assert math.isfinite(value) and value != 0.0, value
+    return temporary, time.perf_counter() - start, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def large_table():
+def large_table(run_longest):
     rows = []
     for steps in LARGE_STEPS:
-        temporary, edges = large_case_megabytes(steps)
-        rows.append(f"| {steps} | {temporary:.1f} MB | {edges:.2f} MB |")
+        temporary, seconds, rss = large_case(steps, run_longest and steps == LARGE_STEPS[-1])
+        ran = "" if seconds is None else f"{seconds:.0f} s, peak RSS {rss:.0f} MB"
+        rows.append(f"| {steps} | {temporary:.1f} MB | {ran} |")
         print(rows[-1], flush=True)
     return "\n".join([
         "16,384 points of Drucker-Prager sand, bspline2 + APIC, float32 (the 16k block of the throughput "
-        f"table), default `Checkpointing()`, measured {datetime.date.today()} (JAX {jax.__version__}):",
+        f"table), default `Checkpointing()`, measured {datetime.date.today()} (JAX {jax.__version__}, "
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores):",
         "",
-        "| steps | XLA temporary memory of the gradient | arguments + outputs |",
-        "|---:|---:|---:|",
+        "| steps | XLA temporary memory of the gradient | one gradient run: wall time, process peak RSS |",
+        "|---:|---:|---|",
         *rows,
     ])
 
@@ -81,10 +97,11 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--no-write", action="store_true")
     parser.add_argument("--large", action="store_true", help="the 16k-point float32 case only")
+    parser.add_argument("--run", action="store_true", help="with --large: also run the longest gradient once")
     arguments = parser.parse_args()
     if arguments.large:
         jax.config.update("jax_enable_x64", False)
-        text = large_table()
+        text = large_table(arguments.run)
         if not arguments.no_write:
             write_section(LARGE_BEGIN, LARGE_END, text)
         return
