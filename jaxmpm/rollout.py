@@ -85,7 +85,8 @@ def checkpointed_rollout(advance, state, steps, checkpointing):
     def run_segment(carry):
         return scan_steps(advance, carry, segment)
 
-    (state, _), outputs = scan_steps(jax.checkpoint(run_segment, prevent_cse=False), (state, jnp.zeros((), jnp.int32)), segments)
+    counted = (state, jnp.zeros((), jnp.int32))
+    (state, _), outputs = scan_steps(jax.checkpoint(run_segment, prevent_cse=False), counted, segments)
     return state, jax.tree_util.tree_map(lambda y: y.reshape((segments * segment,) + y.shape[2:])[:steps], outputs)
 
 

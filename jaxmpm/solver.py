@@ -313,17 +313,19 @@ def bonded_rigid_motions(structure, motions, mass, velocity, occupied, positions
     bonded = {}
     for interface in structure.interfaces:
         if interface.contact is None and (interface.kinematic_first or interface.kinematic_second):
-            rigid, free = (interface.first, interface.second) if interface.kinematic_first else (interface.second, interface.first)
-            bonded.setdefault(rigid, []).append(free)
+            body, free = (interface.first, interface.second) if interface.kinematic_first else (interface.second, interface.first)
+            bonded.setdefault(body, []).append(free)
     motions = dict(motions)
     for block in structure.blocks_of("rigid"):
         if block.field not in bonded:
             continue
         body = motions[block.name]
         arm = positions - body.centre
-        held = sum(jnp.where(occupied[block.field] & occupied[free], mass[free], 0.0) for free in bonded[block.field])
-        momentum = sum(jnp.where((occupied[block.field] & occupied[free])[..., None], mass[free][..., None] * velocity[free], 0.0)
-                       for free in bonded[block.field])
+        held, momentum = jnp.zeros_like(mass[0]), jnp.zeros_like(velocity[0])     # bonded mass, momentum at each node
+        for free in bonded[block.field]:
+            shared = occupied[block.field] & occupied[free]
+            held = held + jnp.where(shared, mass[free], 0.0)
+            momentum = momentum + jnp.where(shared[..., None], mass[free][..., None] * velocity[free], 0.0)
         held_mass, moment_x, moment_y = jnp.sum(held), jnp.sum(held * arm[..., 0]), jnp.sum(held * arm[..., 1])
         held_inertia = jnp.sum(held * (arm[..., 0] * arm[..., 0] + arm[..., 1] * arm[..., 1]))
         zero = jnp.zeros_like(held_mass)
