@@ -15,6 +15,9 @@ once per step by an impulse J on a and -J on b, so momentum is kept exactly:
   impulse    J = m_r dv, m_r = m_a m_b / (m_a + m_b) for two free fields; m_r = m_a (or m_b) when
              b (or a) is prescribed or rigid: such a field acts as infinitely heavy, keeps its
              velocity, and the impulse it receives is reported (reaction, rigid-body motion).
+             A rigid body's nodal velocity is set before: predicted from the last step's
+             force for contact pairs, solved together with the bonded nodes' momentum for
+             bonded interfaces (`solver.bonded_rigid_motions`).
 
 Normals. Against a prescribed or rigid body, the normal is that body's own (its surface is
 known to the resolution of its points and does not deform). Between two free bodies it is the
