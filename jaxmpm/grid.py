@@ -229,9 +229,7 @@ def apply_edge_conditions(velocity, mask, layout, boundaries):
     Beyond a free edge, ghost nodes are ordinary nodes.
     """
     velocity = velocity * mask
-    for kind, axis, ghost, mirror in ghost_mirror_pairs(layout, boundaries):
-        for component, sign in enumerate(mirror_signs(kind, axis)):
-            velocity = velocity.at[node_selector(axis, ghost, component)].set(
-                sign * jnp.take(velocity[..., component], mirror, axis=axis - 2)
-            )
+    for kind, axis, ghost, mirror in ghost_mirror_pairs(layout, boundaries):     # both components in one write
+        signs = jnp.asarray(mirror_signs(kind, axis), velocity.dtype)
+        velocity = velocity.at[node_selector(axis, ghost)].set(signs * jnp.take(velocity, mirror, axis=axis - 3))
     return velocity
