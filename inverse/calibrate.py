@@ -95,7 +95,7 @@ class CompiledProblem:
     residuals: object      # residuals(values (P,), data, bases) -> (M,)
     start: object
     iterate: object
-    losses: object         # losses(z (S, P), data, bases) -> (S,)
+    losses: object         # losses(z (S, P), data, bases) -> (S,); None for "lm" (its state holds them)
 
 
 def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) -> CompiledProblem:
@@ -131,7 +131,7 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
         residuals=residuals,
         start=start,
         iterate=iterate,
-        losses=jax.jit(jax.vmap(loss_of_z, in_axes=(0, None, None))),
+        losses=None if optimizer_name == "lm" else jax.jit(jax.vmap(loss_of_z, in_axes=(0, None, None))),
     )
     cache[key] = problem
     return problem
