@@ -50,12 +50,50 @@ import tomllib
 from pathlib import Path
 
 from jaxmpm.errors import SceneError
-from jaxmpm.scene import _Table, convert, load_scene
+from jaxmpm.keys import Key, Section, convert, read_section
+from jaxmpm.scene import load_scene
+from inverse.calibrate import OPTIMIZERS
 from inverse.observations import load_observations
 
-OPTIONS = {"name": ("str", "lm"), "max_iterations": ("int", 50), "starts": ("int", 1),
-           "learning_rate": ("float", None), "gtol": ("float", 1e-8), "ftol": ("float", 1e-10),
-           "seed": ("int", 0), "checkpoint_every": ("int", 5)}
+NOISE = Key("noise", "mapping", "noise standard deviation of each observed probe, in the probe's units: "
+            "one number, or one per observed component (absent: each channel weighted by its RMS)", default={})
+WINDOW = Key("window", "mapping", "each listed probe's value is its mean over this window, centred on "
+             "its time", unit="s", default={})
+EXPERIMENT = Section((
+    Key("name", "str", "the experiment's name in outputs", default=None),
+    Key("scene", "str", "the scene file, relative to the calibration file"),
+    Key("observations", "str", "the observations, .csv or .h5 (a jaxmpm output file works), relative to "
+        "the calibration file"),
+    Key("set", "mapping", "this experiment's own values: dotted name = value (e.g. a pile velocity)", default={}),
+    NOISE,
+    WINDOW,
+), "one experiment: a scene, its observations, its own values")
+OPTIMIZER = Section((
+    Key("name", "str", "'lm' (Levenberg-Marquardt, forward-mode Jacobians), 'lbfgs' or 'adam' (optax)",
+        default="lm", choices=tuple(OPTIMIZERS)),
+    Key("max_iterations", "int", "iteration limit", default=50, low=1, low_inclusive=True),
+    Key("starts", "int", "start points: the configured start plus random draws inside the bounds, run "
+        "together under vmap", default=1, low=1, low_inclusive=True),
+    Key("learning_rate", "float", "Adam's step size (absent: 0.05)", default=None, low=0.0),
+    Key("gtol", "float", "stop when the projected gradient's norm falls below this", default=1e-8,
+        low=0.0, low_inclusive=True),
+    Key("ftol", "float", "stop when the cost's relative decrease falls below this", default=1e-10,
+        low=0.0, low_inclusive=True),
+    Key("seed", "int", "seed of the random start points", default=0),
+    Key("checkpoint_every", "int", "iterations between checkpoints (OUT.h5.checkpoint.npz, removed "
+        "once OUT.h5 is written; --resume continues from it)", default=5, low=1, low_inclusive=True),
+), "the optimiser; every key is optional")
+CALIBRATION_FILE = Section((
+    Key("scene", "str", "one experiment: its scene file, relative to this file (or give [[experiments]])",
+        default=None),
+    Key("observations", "str", "one experiment: its observations, .csv or .h5", default=None),
+    NOISE,
+    WINDOW,
+    Key("experiments", "tables", "several experiments sharing the fitted parameters, instead of scene and "
+        "observations", default=None, section=EXPERIMENT),
+    Key("fit", "mapping", "the parameters to fit: \"dotted.name\" = [low, high] or { low, high, start }"),
+    Key("optimizer", "table", "the optimiser", default={}, section=OPTIMIZER),
+))
 
 
 @dataclasses.dataclass
@@ -89,30 +127,27 @@ class CalibrationConfig:
         return experiments
 
 
-def _per_probe(table: _Table, per_component=False) -> dict:
+def _per_probe(values: dict, path: str, per_component=False) -> dict:
     """{probe: number} of a [window] table, or of a [noise] table (per_component: a number or
     one number per observed component)."""
-    table.known = list(table.data)
-    values = {}
-    for name in table.data:
-        value = table.get(name, "any")
+    checked = {}
+    for name, value in values.items():
+        key = f"{path}.{name}" if path else name
         if per_component and isinstance(value, list) and value:
-            values[name] = [convert(f"{table.key(name)}[{k}]", item, "float") for k, item in enumerate(value)]
+            checked[name] = [convert(f"{key}[{k}]", item, "float") for k, item in enumerate(value)]
         else:
-            values[name] = convert(table.key(name), value, "float")
-    return values
+            checked[name] = convert(key, value, "float")
+    return checked
 
 
-def _experiment(table: _Table, folder: Path, name=None) -> ExperimentConfig:
-    scene_path = folder / table.get("scene", "str")
+def _experiment(values: dict, path: str, folder: Path) -> ExperimentConfig:
+    scene_path = folder / values["scene"]
     scene = load_scene(scene_path)
-    noise = _per_probe(table.table("noise", {}), per_component=True)
-    window = _per_probe(table.table("window", {}))
-    observations = load_observations(folder / table.get("observations", "str"), sigma=noise, window=window)
-    fixed = table.get("set", "any", {})
-    if not isinstance(fixed, dict):
-        raise SceneError(f"{table.key('set')} = {fixed!r} must be a table of dotted names and values.")
-    return ExperimentConfig(name, scene, scene_path, observations, fixed)
+    prefix = f"{path}." if path else ""
+    noise = _per_probe(values["noise"], prefix + "noise", per_component=True)
+    window = _per_probe(values["window"], prefix + "window")
+    observations = load_observations(folder / values["observations"], sigma=noise, window=window)
+    return ExperimentConfig(values.get("name"), scene, scene_path, observations, values.get("set", {}))
 
 
 def load_calibration(path) -> CalibrationConfig:
@@ -125,29 +160,20 @@ def load_calibration(path) -> CalibrationConfig:
         raise SceneError(f"{path} is not valid TOML: {error}.") from None
     except UnicodeDecodeError:
         raise SceneError(f"{path} is not UTF-8 text.") from None
-    root = _Table(data, "")
-    root.known = ["scene", "observations", "fit", "noise", "window", "optimizer", "experiments"]
-    if "experiments" in data:
+    values = read_section(CALIBRATION_FILE, data, "")
+    if values["experiments"] is not None:
         for key in ("scene", "observations", "noise", "window"):
             if key in data:
                 raise SceneError(f"{key} is given beside [[experiments]]: put it inside each experiment.")
-        entries = root.get("experiments", "any")
-        if not isinstance(entries, list) or not entries:
+        if not values["experiments"]:
             raise SceneError("experiments must be a non-empty array of tables ([[experiments]]).")
-        experiments = []
-        for index, entry in enumerate(entries):
-            table = _Table(entry, f"experiments[{index}]")
-            table.known = ["name", "scene", "observations", "set", "noise", "window"]
-            experiments.append(_experiment(table, path.parent, table.get("name", "str", None)))
-            table.finish()
+        experiments = [_experiment(entry, f"experiments[{index}]", path.parent)
+                       for index, entry in enumerate(values["experiments"])]
     else:
-        experiments = [_experiment(root, path.parent)]
-    fit = root.get("fit", "any")
-    if not isinstance(fit, dict) or not fit:
+        for key in ("scene", "observations"):
+            if values[key] is None:
+                raise SceneError(f"{key} is missing: give scene and observations, or [[experiments]] tables.")
+        experiments = [_experiment(values, "", path.parent)]
+    if not values["fit"]:
         raise SceneError("fit must be a table naming at least one parameter, e.g. \"sand.friction_angle\" = [20, 45].")
-    optimizer = root.table("optimizer", {})
-    optimizer.known = list(OPTIONS)
-    options = {key: optimizer.get(key, kind, default) for key, (kind, default) in OPTIONS.items()}
-    optimizer.finish()
-    root.finish()
-    return CalibrationConfig(experiments, fit, options)
+    return CalibrationConfig(experiments, values["fit"], values["optimizer"])

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 
 from jaxmpm.errors import SceneError
 from jaxmpm.materials import material_parameters
-from jaxmpm.scene import _Table, read_material
+from jaxmpm.scene import read_material
 
 
 def as_material(material):
@@ -18,7 +18,7 @@ def as_material(material):
     (read and checked as a [materials.NAME] table is; values may be JAX values)."""
     if not isinstance(material, dict):
         return material
-    material = read_material(_Table(dict(material), "material"))
+    material = read_material(dict(material), "material")
     material.check("material")
     return material
 

@@ -25,7 +25,7 @@ from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.grid import GridLayout
 from jaxmpm.initial_stress import depth_below_top, geostatic_stress, jaky_k0
 from jaxmpm.contact import Interface
-from jaxmpm.materials.base import is_concrete
+from jaxmpm.keys import is_concrete
 from jaxmpm.parameters import scene_parameters
 from jaxmpm.probes import make_probes
 from jaxmpm.results import Result

@@ -1,5 +1,7 @@
 """Scene files: round trip, and one clear error for every class of bad input (the scene format of jaxmpm.scene)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -57,7 +59,24 @@ BAD_INPUTS = [
     ("bad choice", ('bottom = "fixed"', 'bottom = "glued"'), ["grid.boundaries.bottom", "'glued'"]),
     ("missing", ("duration = 0.01\n", ""), ["scene.duration", "missing"]),
     ("misspelled required key", ("young = 1.0e6", "youngs = 1.0e6"),
-     ["materials.soil.young is missing", "is 'materials.soil.youngs' a misspelling of it?"]),
+     ["materials.soil.youngs is not a known key", "did you mean 'young'?", "materials.soil.young is required and missing"]),
+    ("key of another variant", ('body = "block"', 'body = "block"\nat = [0.1, 0.1]'),
+     ["probes[1].at does not apply when kind = 'body_displacement'"]),
+    ("misspelled optional key", ("[numerics]", "[numerics]\ndampnig = 0.1"), ["numerics.dampnig", "did you mean 'damping'?"]),
+    ("prescribed body velocity", ('region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }',
+                                  'region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }\nvelocity = [0.1, 0.0]\n'
+                                  'kinematics = { type = "prescribed", velocity = [0.0, -0.1] }'),
+     ["bodies[0].velocity is given for a prescribed body", "bodies[0].kinematics.velocity"]),
+    ("velocity table without time", ('region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }',
+                                     'region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }\n'
+                                     'kinematics = { type = "prescribed", velocity = [[0.0, -0.1], [0.0, 0.0]] }'),
+     ["bodies[0].kinematics.velocity", "give time"]),
+    ("region with two shapes", ('region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }',
+                                'region = { rectangle = [[0.0, 0.0], [0.4, 0.2]], polygon = [[0, 0], [1, 0], [0, 1]] }'),
+     ["bodies[0].region", "exactly one of rectangle"]),
+    ("k0 word", ('region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }',
+                 'region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }\ninitial_stress = { geostatic = { k0 = "rankine" } }'),
+     ["bodies[0].initial_stress.geostatic.k0 = 'rankine'", "'jaky'"]),
     ("body outside grid", ("[0.4, 0.2]", "[0.5, 0.2]"), ["bodies[0].region", "[0.5, 0.0]", "outside the grid"]),
     ("unknown material", ('material = "soil"', 'material = "sand"'), ["bodies[0].material", "'sand'"]),
     ("grid not whole cells", ("cell = 0.05", "cell = 0.07"), ["grid.size", "grid.cell = 0.07"]),
@@ -89,6 +108,57 @@ def test_bad_input_gives_one_clear_sentence(change, replacement, words):
     assert "\n" not in message
     for word in words:
         assert word in message, (word, message)
+
+
+def test_scenes_built_in_python_meet_the_schema_bounds():
+    # The schema's checks run on the dataclasses, not only in the reader.
+    scene = jaxmpm.Scene.from_toml(BLOCK)
+    cases = [
+        (lambda: dataclasses.replace(scene, grid=dataclasses.replace(scene.grid, cell=-0.05)), "grid.cell = -0.05 is out of range"),
+        (lambda: dataclasses.replace(scene, cfl=1.5), "scene.cfl = 1.5 is out of range"),
+        (lambda: dataclasses.replace(scene, numerics=jaxmpm.Numerics(ppc=2.5)), "numerics.ppc = 2.5 must be an integer"),
+        (lambda: dataclasses.replace(scene, bodies=(dataclasses.replace(scene.bodies[0], velocity=("fast", 0.0)),)),
+         "bodies[0].velocity = 'fast' must be a number"),
+        (lambda: dataclasses.replace(scene, materials={"soil": jaxmpm.LinearElastic(1800.0, 1e6, 0.7)}),
+         "materials.soil.poisson = 0.7 is out of range"),
+        (lambda: dataclasses.replace(scene, probes=(jaxmpm.Probe("top", "displacement"),)), "probes[0].at is missing"),
+        (lambda: dataclasses.replace(scene, probes=(jaxmpm.Probe("top", "speed", at=(0.1, 0.1)),)),
+         "probes[0].kind = 'speed' is not one of"),
+    ]
+    for build, words in cases:
+        with pytest.raises(SceneError) as caught:
+            build()
+        assert words in str(caught.value), (words, str(caught.value))
+
+
+def test_every_field_of_the_scene_dataclasses_is_a_key_of_the_schema():
+    # The reference is generated from the schema: a field without a key would be undocumented.
+    from jaxmpm.scene import schema
+
+    tables = {jaxmpm.Scene: schema.SCENE, jaxmpm.Grid: schema.GRID, jaxmpm.Boundaries: schema.BOUNDARIES,
+              jaxmpm.Numerics: schema.NUMERICS, jaxmpm.Body: schema.BODY, jaxmpm.Contact: schema.CONTACT,
+              jaxmpm.Probe: schema.PROBE, jaxmpm.Kinematics: schema.KINEMATICS_TABLE, jaxmpm.Geostatic: schema.GEOSTATIC}
+    top_level = {"grid", "materials", "bodies", "numerics", "probes", "contacts"}
+    for cls, section in tables.items():
+        fields = {field.name for field in dataclasses.fields(cls)} - {"filled"} - (top_level if cls is jaxmpm.Scene else set())
+        assert fields == set(section.all_names()), cls.__name__
+    for cls in (jaxmpm.LinearElastic, jaxmpm.DruckerPrager):
+        assert {field.name for field in dataclasses.fields(cls)} == {key.name for key in cls.keys}, cls.__name__
+
+
+def test_the_scene_reference_is_current():
+    # docs/scene_reference.md is generated from the schemas; regenerate it after changing one
+    # (python -m jaxmpm.scene.reference).
+    from jaxmpm.scene import reference
+
+    assert reference.PAGE.read_text() == reference.markdown()
+
+
+def test_a_scene_file_that_is_not_utf8_is_one_clear_error(tmp_path):
+    path = tmp_path / "latin1.toml"
+    path.write_bytes(BLOCK.replace('name = "block"', 'name = "bl\xf6ck"').encode("latin-1"))
+    with pytest.raises(SceneError, match="is not UTF-8 text"):
+        jaxmpm.load_scene(path)
 
 
 def test_overlapping_bodies_are_an_error_before_compiling():

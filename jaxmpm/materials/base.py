@@ -3,7 +3,9 @@
 A material is a frozen dataclass holding what the scene file says (SI units, angles in
 degrees). What the solver compiles is its `law`: a small frozen object holding only the static
 options, whose `update` reads every physical value from `params`, so no parameter value is ever
-part of the compiled structure. The material's fields split in two:
+part of the compiled structure. Each material class declares its scene-file keys in `keys` (`jaxmpm.keys.Key`: unit, default,
+range, meaning), from which the reader, the range checks and the scene reference come. The
+material's fields split in two:
 - `option_names`: static string choices (e.g. the Drucker-Prager cone) that decide which code
   is compiled; changing one recompiles. Whether an optional number is given at all (e.g.
   `fluidity`) is static too;
@@ -19,34 +21,21 @@ compiled code. `Material` gives every material the law's `update`, `init_state` 
 """
 
 import dataclasses
-import math
 
-import jax
-
-from jaxmpm.errors import SceneError
+from jaxmpm.keys import Key, check_value
 
 
-def is_concrete(value):
-    """True for Python/numpy numbers; False for JAX tracers (which cannot be range-checked)."""
-    return not isinstance(value, jax.core.Tracer)
+ELASTIC_KEYS = (
+    Key("density", "float", "mass density rho", unit="kg/m^3", low=0.0),
+    Key("young", "float", "Young's modulus E", unit="Pa", low=0.0),
+    Key("poisson", "float", "Poisson's ratio nu", low=-1.0, high=0.5),
+)
 
 
-def check_range(key, value, low=None, high=None, low_inclusive=False, high_inclusive=False):
-    """Raise SceneError unless low < value < high (bounds optional, inclusivity as given)."""
-    if not is_concrete(value):
-        return
-    if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "dtype"):
-        raise SceneError(f"{key} = {value!r} must be a number.")
-    value = float(value)
-    if not math.isfinite(value):
-        raise SceneError(f"{key} = {value!r} must be finite.")
-    too_low = low is not None and (value < low if low_inclusive else value <= low)
-    too_high = high is not None and (value > high if high_inclusive else value >= high)
-    if too_low or too_high:
-        left = "[" if low_inclusive else "("
-        right = "]" if high_inclusive else ")"
-        span = f"{left}{'-inf' if low is None else low}, {'inf' if high is None else high}{right}"
-        raise SceneError(f"{key} = {value!r} is out of range: it must lie in {span}.")
+def check_keys(material, where):
+    """The range and choice checks of every key a material declares (`material.keys`)."""
+    for key in material.keys:
+        check_value(f"{where}.{key.name}", key, getattr(material, key.name))
 
 
 def number_fields(cls):

@@ -35,7 +35,8 @@ import jax.numpy as jnp
 
 from jaxmpm import tensors
 from jaxmpm.errors import SceneError
-from jaxmpm.materials.base import Material, check_range, is_concrete
+from jaxmpm.keys import Key, is_concrete
+from jaxmpm.materials.base import ELASTIC_KEYS, Material, check_keys
 from jaxmpm.materials.linear_elastic import bulk_and_shear_moduli, elastic_trial_entries, p_wave_speed
 
 CONES = {
@@ -132,6 +133,21 @@ class DruckerPrager(Material):
 
     model: ClassVar[str] = "drucker_prager"
     option_names: ClassVar[tuple[str, ...]] = ("cone",)
+    keys: ClassVar[tuple] = ELASTIC_KEYS + (
+        Key("friction_angle", "float", "friction angle phi of the yield cone", unit="degree",
+            low=0.0, high=90.0, low_inclusive=True),
+        Key("dilation_angle", "float", "dilation angle psi of the plastic potential g = q - m(psi) p; "
+            "0 is the paper's g = q (no dilatancy); at most the friction angle", unit="degree",
+            default=0.0, low=0.0, high=90.0, low_inclusive=True),
+        Key("cone", "str", "which Drucker-Prager cone matches Mohr-Coulomb: 'paper' "
+            "m = 18 sin(phi) / (9 - sin^2 phi), 'compression' 6 sin / (3 - sin), 'extension' "
+            "6 sin / (3 + sin), 'plane_strain' sqrt(3) sin (static: changing it recompiles)",
+            default="paper", choices=tuple(CONES)),
+        Key("fluidity", "float", "Perzyna fluidity gamma; given, the model is viscoplastic "
+            "(d_vp = gamma <Phi> dg/dsigma, Phi = ((q - m p) / (m p))^N); absent, rate-independent",
+            unit="1/s", default=None, low=0.0),
+        Key("exponent", "float", "Perzyna exponent N (only with fluidity)", default=1.0, low=0.0),
+    )
 
     @property
     def parameter_names(self):
@@ -143,24 +159,14 @@ class DruckerPrager(Material):
         return self.fluidity is not None
 
     def check(self, where):
-        check_range(f"{where}.density", self.density, low=0.0)
-        check_range(f"{where}.young", self.young, low=0.0)
-        check_range(f"{where}.poisson", self.poisson, low=-1.0, high=0.5)
-        check_range(f"{where}.friction_angle", self.friction_angle, low=0.0, high=90.0, low_inclusive=True)
-        check_range(f"{where}.dilation_angle", self.dilation_angle, low=0.0, high=90.0, low_inclusive=True)
-        if self.cone not in CONES:
-            options = ", ".join(repr(name) for name in CONES)
-            raise SceneError(f"{where}.cone = {self.cone!r} is not one of {options}.")
+        check_keys(self, where)
         concrete = is_concrete(self.dilation_angle) and is_concrete(self.friction_angle)
         if concrete and self.dilation_angle > self.friction_angle:
             raise SceneError(
                 f"{where}.dilation_angle = {self.dilation_angle!r} exceeds the friction angle "
                 f"{self.friction_angle!r}."
             )
-        if self.viscoplastic:
-            check_range(f"{where}.fluidity", self.fluidity, low=0.0)
-            check_range(f"{where}.exponent", self.exponent, low=0.0)
-        elif self.exponent != 1.0:
+        if not self.viscoplastic and self.exponent != 1.0:
             raise SceneError(
                 f"{where}.exponent = {self.exponent!r} is given without fluidity: give "
                 "fluidity (1/s) for the viscoplastic model, or remove exponent."

@@ -10,7 +10,7 @@ from typing import ClassVar
 import jax.numpy as jnp
 
 from jaxmpm import tensors
-from jaxmpm.materials.base import Material, check_range
+from jaxmpm.materials.base import ELASTIC_KEYS, Material, check_keys
 
 
 def bulk_and_shear_moduli(young, poisson):
@@ -89,11 +89,10 @@ class LinearElastic(Material):
     model: ClassVar[str] = "linear_elastic"
     parameter_names: ClassVar[tuple[str, ...]] = ("density", "young", "poisson")
     option_names: ClassVar[tuple[str, ...]] = ()
+    keys: ClassVar[tuple] = ELASTIC_KEYS
 
     def check(self, where):
-        check_range(f"{where}.density", self.density, low=0.0)
-        check_range(f"{where}.young", self.young, low=0.0)
-        check_range(f"{where}.poisson", self.poisson, low=-1.0, high=0.5)
+        check_keys(self, where)
 
     @property
     def law(self):

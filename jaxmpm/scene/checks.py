@@ -1,0 +1,236 @@
+"""Every check of a scene that needs no compiling, run whenever a `Scene` is built.
+
+First each value against its key in the schema (range, choices; so a scene built in Python
+meets the same bounds as one read from a file), then what relates keys: bodies inside the
+grid and on defined materials, names unique and safe, contact pairs and probe targets that
+exist, axisymmetric restrictions, an explicit time step below the stable limit. Each failure
+is one `SceneError` sentence naming the key and the value.
+"""
+
+from __future__ import annotations
+
+from jaxmpm.errors import SceneError
+from jaxmpm.keys import check_range, check_value
+from jaxmpm.scene.model import KINEMATICS, NAME, Grid, Kinematics, Rectangle, Scene
+from jaxmpm.scene.schema import SCENE_FILE
+
+
+def check_fields(obj, section, path, variant=None):
+    """The schema's checks on the attributes of `obj` that are values (not tables)."""
+    for key in section.keys_for(variant):
+        if key.section is None:
+            check_value(f"{path}.{key.name}", key, getattr(obj, key.name))
+
+
+def _section(*names):
+    section = SCENE_FILE
+    for name in names:
+        section = section.key(name).section
+    return section
+
+
+def check_scene(scene: Scene):
+    """Every check that needs no compiling. Raises SceneError naming the key and value."""
+    check_fields(scene, _section("scene"), "scene")
+    if scene.output_every is not None:
+        check_range("scene.output_every", scene.output_every, low=0.0, high=scene.duration, high_inclusive=True)
+    check_grid(scene.grid)
+    check_fields(scene.numerics, _section("numerics"), "numerics")
+    if scene.geometry == "axisymmetric":
+        check_axisymmetric(scene)
+    check_names(scene)
+    for name, material in scene.materials.items():
+        material.check(f"materials.{name}")
+    check_bodies(scene)
+    check_contacts(scene)
+    check_probes(scene)
+    if scene.dt is not None and scene.dt > scene.stable_dt:
+        raise SceneError(
+            f"scene.dt = {scene.dt:g} s is above the stable limit {scene.stable_dt:.4g} s "
+            "(cell / max wave speed): use a smaller dt, or give cfl instead."
+        )
+
+
+def check_grid(grid: Grid):
+    check_fields(grid, _section("grid"), "grid")
+    check_fields(grid.boundaries, _section("grid", "boundaries"), "grid.boundaries")
+    for length in grid.size:
+        cells = length / grid.cell
+        if abs(cells - round(cells)) > 1e-6 * max(1.0, cells) or round(cells) < 1:
+            raise SceneError(
+                f"grid.size = {list(grid.size)} is not a whole number of cells of "
+                f"grid.cell = {grid.cell}."
+            )
+
+
+def check_names(scene: Scene):
+    """Names of materials, bodies and probes: safe in HDF5 paths and --set, never 'time'."""
+    if not scene.materials:
+        raise SceneError("materials is empty: define at least one [materials.NAME] table.")
+    if not scene.bodies:
+        raise SceneError("bodies is empty: define at least one [[bodies]] table.")
+    named = [(f"materials.{name}", name) for name in scene.materials]
+    named += [(f"bodies[{i}].name", body.name) for i, body in enumerate(scene.bodies)]
+    named += [(f"probes[{i}].name", probe.name) for i, probe in enumerate(scene.probes)]
+    for key, name in named:
+        if not isinstance(name, str) or not NAME.match(name) or name == "time":
+            raise SceneError(
+                f"{key} = {name!r} must be a name of letters, digits, '_' or '-' starting with a "
+                "letter or '_', other than 'time'."
+            )
+    for plural, singular, names in (("bodies", "body", [b.name for b in scene.bodies]),
+                                    ("probes", "probe", [p.name for p in scene.probes])):
+        for index, name in enumerate(names):
+            if names.index(name) != index:
+                raise SceneError(f"{plural}[{index}].name = {name!r} is used by more than one {singular}.")
+
+
+def _inside_grid(grid: Grid, point) -> bool:
+    tolerance = 1e-9 * grid.cell
+    return all(
+        grid.origin[axis] - tolerance <= point[axis] <= grid.origin[axis] + grid.size[axis] + tolerance
+        for axis in (0, 1)
+    )
+
+
+def check_bodies(scene: Scene):
+    body_keys = _section("bodies")
+    for index, body in enumerate(scene.bodies):
+        where = f"bodies[{index}]"
+        check_fields(body, body_keys, where)
+        if body.material not in scene.materials:
+            known = ", ".join(repr(name) for name in scene.materials)
+            raise SceneError(f"{where}.material = {body.material!r} is not defined (known: {known}).")
+        check_region(where, body.region, scene.grid)
+        check_kinematics(f"{where}.kinematics", body.kinematics)
+        if body.kinematics.type == "prescribed" and tuple(body.velocity) != (0.0, 0.0):
+            raise SceneError(
+                f"{where}.velocity is given for a prescribed body: its velocity is "
+                f"{where}.kinematics.velocity (remove {where}.velocity)."
+            )
+        if body.initial_stress is not None:
+            check_initial_stress(scene, where, body)
+
+
+def check_region(where, region, grid: Grid):
+    vertices = region.vertices
+    if isinstance(region, Rectangle):
+        if not all(region.lower[a] < region.upper[a] for a in (0, 1)):
+            raise SceneError(
+                f"{where}.region.rectangle = {[list(region.lower), list(region.upper)]} "
+                "must go from the lower-left to the upper-right corner."
+            )
+    elif len(vertices) < 3:
+        raise SceneError(f"{where}.region.polygon has {len(vertices)} vertices: it needs at least 3.")
+    for vertex in vertices:
+        if not _inside_grid(grid, vertex):
+            raise SceneError(
+                f"{where}.region has the point {list(vertex)} outside the grid "
+                f"(origin {list(grid.origin)}, size {list(grid.size)})."
+            )
+
+
+def check_initial_stress(scene: Scene, where, body):
+    if body.kinematics.type != "free":
+        raise SceneError(
+            f"{where}.initial_stress is given for a {body.kinematics.type} body, whose stress is never used: "
+            "remove it (only free bodies carry stress)."
+        )
+    key = f"{where}.initial_stress.geostatic.k0"
+    check_value(key, _section("bodies", "initial_stress", "geostatic").key("k0"), body.initial_stress.k0)
+    if body.initial_stress.k0 == "jaky" and not hasattr(scene.materials[body.material], "friction_angle"):
+        raise SceneError(
+            f"{key} = 'jaky' needs a friction angle, which material "
+            f"{body.material!r} has not: give k0 as a number."
+        )
+
+
+def check_kinematics(key: str, kinematics: Kinematics):
+    """SceneError unless the kinematics are complete and consistent."""
+    if kinematics.type not in KINEMATICS:
+        raise SceneError(f"{key}.type = {kinematics.type!r} is not one of {', '.join(map(repr, KINEMATICS))}.")
+    if kinematics.type != "prescribed":
+        if kinematics.velocity is not None or kinematics.time is not None:
+            raise SceneError(f"{key} gives a velocity table for a {kinematics.type} body: only prescribed bodies take one.")
+        return
+    if kinematics.velocity is None:
+        raise SceneError(f"{key}.velocity is missing: a prescribed body needs its velocity [vx, vy].")
+    if kinematics.time is None:
+        if len(kinematics.velocity) != 2 or isinstance(kinematics.velocity[0], (tuple, list)):
+            raise SceneError(f"{key}.velocity = {list(kinematics.velocity)!r} must be [vx, vy] (or give time for a table).")
+        return
+    times, rows = list(kinematics.time), list(kinematics.velocity)
+    if len(times) < 2 or len(rows) != len(times) or any(not isinstance(row, (tuple, list)) or len(row) != 2 for row in rows):
+        raise SceneError(
+            f"{key}: time = {times} and velocity = {[list(row) if isinstance(row, (tuple, list)) else row for row in rows]} "
+            "must be tables of the same length (at least 2), one [vx, vy] per time."
+        )
+    if times[0] != 0.0 or any(later <= earlier for earlier, later in zip(times, times[1:])):
+        raise SceneError(f"{key}.time = {times} must start at 0 and increase strictly.")
+
+
+def check_axisymmetric(scene: Scene):
+    """In axisymmetry x is the radius: the grid starts on the axis, whose edge holds the
+    radial velocity, gravity is axial, and no body turns in the (r, z) plane."""
+    grid = scene.grid
+    if grid.origin[0] != 0.0:
+        raise SceneError(
+            f"grid.origin = {list(grid.origin)}: in axisymmetry the grid starts on the axis, so origin[0] must be 0."
+        )
+    if grid.boundaries.left not in ("slip", "fixed"):
+        raise SceneError(
+            f"grid.boundaries.left = {grid.boundaries.left!r}: in axisymmetry the left edge is the axis, where "
+            "the radial velocity is zero; make it 'slip' (or 'fixed')."
+        )
+    if scene.gravity[0] != 0.0:
+        raise SceneError(f"scene.gravity = {list(scene.gravity)}: in axisymmetry gravity is axial, so gravity[0] must be 0.")
+    for index, body in enumerate(scene.bodies):
+        if body.kinematics.type == "rigid":
+            raise SceneError(
+                f"bodies[{index}].kinematics.type = 'rigid' is not available in axisymmetry (a ring cannot turn in "
+                "the (r, z) plane): use 'prescribed', or a stiff free body."
+            )
+
+
+def check_contacts(scene: Scene):
+    names = [body.name for body in scene.bodies]
+    kinds = {body.name: body.kinematics.type for body in scene.bodies}
+    declared = []
+    for index, contact in enumerate(scene.contacts):
+        check_fields(contact, _section("contacts"), f"contacts[{index}]")
+        key = f"contacts[{index}].pair"
+        first, second = contact.pair
+        for name in contact.pair:
+            if name not in names:
+                raise SceneError(f"{key} = {list(contact.pair)} names {name!r}, which is not a body.")
+        if first == second:
+            raise SceneError(f"{key} = {list(contact.pair)} pairs body {first!r} with itself.")
+        if kinds[first] != "free" and kinds[second] != "free":
+            raise SceneError(
+                f"{key} = {list(contact.pair)} pairs two bodies that are not free ({kinds[first]} and "
+                f"{kinds[second]}): contact needs at least one deformable (free) body."
+            )
+        if set(contact.pair) in declared:
+            raise SceneError(f"{key} = {list(contact.pair)}: these two bodies are already paired.")
+        declared.append(set(contact.pair))
+
+
+def check_probes(scene: Scene):
+    kinds = {body.name: body.kinematics.type for body in scene.bodies}
+    declared = [set(contact.pair) for contact in scene.contacts]
+    probe_keys = _section("probes")
+    for index, probe in enumerate(scene.probes):
+        where = f"probes[{index}]"
+        check_value(f"{where}.kind", probe_keys.key("kind"), probe.kind)
+        check_fields(probe, probe_keys, where, probe.kind)
+        if probe.kind in ("body_displacement", "body_rotation", "reaction") and probe.body not in kinds:
+            raise SceneError(f"{where}.body = {probe.body!r} is not the name of a body.")
+        if probe.kind == "reaction" and kinds[probe.body] != "prescribed":
+            raise SceneError(
+                f"{where}.body = {probe.body!r} is {kinds[probe.body]}, not prescribed: a reaction is the "
+                "force that keeps a prescribed body on its path."
+            )
+        if probe.kind == "contact_force" and set(probe.pair) not in declared:
+            raise SceneError(f"{where}.pair = {list(probe.pair)} is not a pair of [[contacts]].")
+        if probe.kind == "displacement" and not _inside_grid(scene.grid, probe.at):
+            raise SceneError(f"{where}.at = {list(probe.at)} is outside the grid.")
