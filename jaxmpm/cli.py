@@ -45,9 +45,11 @@ def build_parser():
                      help="override a scene value, e.g. sand.friction_angle=32 or grid.cell=0.01")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     calibrate = commands.add_parser("calibrate", help="fit scene parameters to observed probe histories")
-    calibrate.add_argument("config", help="calibration file (TOML; see inverse/config.py)")
+    calibrate.add_argument("config", help="calibration file (TOML; keys: docs/scene_reference.md)")
     calibrate.add_argument("-o", "--output", help="fit HDF5 file (default: CONFIG name with .h5)")
     calibrate.add_argument("--resume", action="store_true", help="continue from OUTPUT.checkpoint.npz")
+    calibrate.add_argument("--keep-checkpoint", action="store_true",
+                           help="keep OUTPUT.checkpoint.npz after the fit is written (default: remove it)")
     calibrate.add_argument("--quiet", action="store_true", help="no progress bar")
     plot = commands.add_parser("plot", help="draw a run: points coloured by a field, or probe histories")
     plot.add_argument("result", help="output HDF5 file of `jaxmpm run`")
@@ -127,12 +129,16 @@ def calibrate_command(arguments):
         print(f"jaxmpm: interrupted; resume with --resume (checkpoint {checkpoint})", file=sys.stderr)
         return 130
     except jaxmpm.SimulationError as error:
-        print(f"jaxmpm: {error}", file=sys.stderr)
+        kept = f" (progress kept in {checkpoint}; resume with --resume)" if checkpoint.exists() else ""
+        print(f"jaxmpm: {error}{kept}", file=sys.stderr)
         return 1
     fit.save(output)
-    checkpoint.unlink(missing_ok=True)      # the fit is written: the checkpoint has served
     print(fit.summary())
     print(f"wrote {output}")
+    if arguments.keep_checkpoint:
+        print(f"kept the checkpoint {checkpoint}")
+    else:
+        checkpoint.unlink(missing_ok=True)      # the fit is written: the checkpoint has served
     return 0
 
 

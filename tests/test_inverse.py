@@ -272,8 +272,11 @@ def test_calibrate_command(tmp_path, capsys):
         "[optimizer]\nmax_iterations = 8\n"
     )
     output = tmp_path / "fit.h5"
-    assert main(["calibrate", str(config), "-o", str(output), "--quiet"]) == 0
-    assert "sand.friction_angle" in capsys.readouterr().out
+    assert main(["calibrate", str(config), "-o", str(output), "--quiet", "--keep-checkpoint"]) == 0
+    printed = capsys.readouterr().out
+    assert "sand.friction_angle" in printed
+    assert f"kept the checkpoint {output}.checkpoint.npz" in printed     # asked to keep it (removed by default:
+    assert (tmp_path / "fit.h5.checkpoint.npz").exists()                  # tests/test_calibration_experiments.py)
     import h5py
 
     with h5py.File(output) as file:
