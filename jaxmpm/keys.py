@@ -249,10 +249,12 @@ def read_section(section: Section, data, path: str) -> dict:
     if not isinstance(data, dict):
         raise SceneError(f"{path} = {data!r} must be a table.")
     variant = None
-    if section.variant_key is not None and section.variant_key in data:
-        variant_spec = section.key(section.variant_key)
-        variant = convert(_join(path, section.variant_key), data[section.variant_key], variant_spec.kind)
-        check_value(_join(path, section.variant_key), variant_spec, variant)
+    if section.variant_key is not None:
+        spec = section.key(section.variant_key)
+        if section.variant_key in data:
+            variant = read_value(spec, data[section.variant_key], _join(path, section.variant_key))
+        elif not spec.required:
+            variant = spec.default
     keys = section.keys_for(variant)
     names = [key.name for key in keys]
     missing = [key.name for key in keys if key.required and key.name not in data]
@@ -260,6 +262,8 @@ def read_section(section: Section, data, path: str) -> dict:
         if name in names:
             continue
         if name in section.all_names():
+            if variant is None:         # the variant key is missing: that is the error
+                continue
             raise SceneError(
                 f"{_join(path, name)} does not apply when {section.variant_key} = {variant!r}: remove it."
             )

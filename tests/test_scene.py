@@ -62,6 +62,11 @@ BAD_INPUTS = [
      ["materials.soil.youngs is not a known key", "did you mean 'young'?", "materials.soil.young is required and missing"]),
     ("key of another variant", ('body = "block"', 'body = "block"\nat = [0.1, 0.1]'),
      ["probes[1].at does not apply when kind = 'body_displacement'"]),
+    ("missing variant key", ('kind = "displacement"\nat', 'at'), ["probes[0].kind is missing"]),
+    ("velocity of a free body's kinematics", ('region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }',
+                                              'region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }\n'
+                                              'kinematics = { velocity = [0.0, 1.0] }'),
+     ["bodies[0].kinematics.velocity does not apply when type = 'free'"]),
     ("misspelled optional key", ("[numerics]", "[numerics]\ndampnig = 0.1"), ["numerics.dampnig", "did you mean 'damping'?"]),
     ("prescribed body velocity", ('region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }',
                                   'region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }\nvelocity = [0.1, 0.0]\n'
