@@ -74,14 +74,15 @@ OPTIMIZER = Section((
     Key("max_iterations", "int", "iteration limit", default=50, low=1, low_inclusive=True),
     Key("starts", "int", "start points: the configured start plus random draws inside the bounds, run "
         "together under vmap", default=1, low=1, low_inclusive=True),
-    Key("learning_rate", "float", "Adam's step size (absent: 0.05)", default=None, low=0.0),
-    Key("gtol", "float", "stop when the projected gradient's norm falls below this", default=1e-8,
-        low=0.0, low_inclusive=True),
-    Key("ftol", "float", "stop when the cost's relative decrease falls below this", default=1e-10,
-        low=0.0, low_inclusive=True),
+    Key("learning_rate", "float", "step size of 'adam' (absent: 0.05) and of 'lbfgs' (absent: its line "
+        "search sets it); unused by 'lm'", default=None, low=0.0),
+    Key("gtol", "float", "stop when the largest gradient component ||dL/dz||_inf, in the unconstrained "
+        "coordinates z of the bounded parameters, falls below this", default=1e-8, low=0.0, low_inclusive=True),
+    Key("ftol", "float", "stop when an accepted step changes the loss L by at most ftol max(|L|, tiny)",
+        default=1e-10, low=0.0, low_inclusive=True),
     Key("seed", "int", "seed of the random start points", default=0),
     Key("checkpoint_every", "int", "iterations between checkpoints (OUT.h5.checkpoint.npz, removed "
-        "once OUT.h5 is written; --resume continues from it)", default=5, low=1, low_inclusive=True),
+        "once OUT.h5 is written unless --keep-checkpoint; --resume continues from it)", default=5, low=1, low_inclusive=True),
 ), "the optimiser; every key is optional")
 CALIBRATION_FILE = Section((
     Key("scene", "str", "one experiment: its scene file, relative to this file (or give [[experiments]])",
