@@ -43,6 +43,8 @@ def build_parser():
     run.add_argument("-o", "--output", help="output HDF5 file (default: SCENE name with .h5)")
     run.add_argument("--set", dest="assignments", action="append", default=[], metavar="KEY=VALUE",
                      help="override a scene value, e.g. sand.friction_angle=32 or grid.cell=0.01")
+    run.add_argument("--resume", action="store_true",
+                     help="continue the interrupted run in OUTPUT (same scene and --set values)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     calibrate = commands.add_parser("calibrate", help="fit scene parameters to observed probe histories")
     calibrate.add_argument("config", help="calibration file (TOML; keys: docs/scene_reference.md)")
@@ -85,13 +87,13 @@ def run_command(arguments):
         file=sys.stderr,
     )
     try:
-        sim.run(progress=not arguments.quiet, save_to=output)
+        sim.run(progress=not arguments.quiet, save_to=output, resume=arguments.resume)
     except jaxmpm.SimulationError as error:
         print(f"jaxmpm: {error}", file=sys.stderr)
         print(f"partial output written to {output}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print(f"jaxmpm: interrupted; partial output written to {output}", file=sys.stderr)
+        print(f"jaxmpm: interrupted; partial output written to {output} (continue with --resume)", file=sys.stderr)
         return 130
     print(f"wrote {output}")
     return 0

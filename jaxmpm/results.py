@@ -6,21 +6,48 @@ thickness" or "per radian": what the stored mass and volume are per); datasets /
 /probes/NAME (T, k), /snapshots/time (S,), /snapshots/BODY/FIELD (S, N_body, ...). Tensor
 components are ordered (x, y, z), so stress[..., 2, 2] is sigma_zz; in axisymmetry (r, z,
 theta), so it is the hoop stress. `geometry` and `extent` repeat what the scene says, for
-other readers; `load` reads files written before they existed. Files are written to a
-temporary name and renamed, so a reader never sees half a file.
+other readers; `load` reads files written before they existed. `save` writes to a temporary
+name and renames, so a reader never sees half a file; a run with `save_to` streams the same
+layout output by output (jaxmpm/output.py), plus `steps_done` and a `/resume` group.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from pathlib import Path
 
 import h5py
 import numpy as np
 
 from jaxmpm.files import atomic_path
+from jaxmpm.output import EXTENTS
 
-EXTENTS = {"plane_strain": "per metre of thickness", "axisymmetric": "per radian"}
+
+class FileSnapshots(Mapping):
+    """A run's snapshots left in its HDF5 file, read when asked for: `["time"]` is (S,),
+    `[body][field]` is (S, N_body, ...), as in an in-memory Result. A long run's Result holds
+    these, so its memory does not grow with the number of snapshots."""
+
+    def __init__(self, path, group="snapshots"):
+        self.path, self.group = Path(path), group
+
+    def _names(self):
+        with h5py.File(self.path, "r") as file:
+            return list(file[self.group])
+
+    def __getitem__(self, name):
+        with h5py.File(self.path, "r") as file:
+            item = file[self.group][name]
+            if isinstance(item, h5py.Dataset):
+                return item[()]
+        return FileSnapshots(self.path, f"{self.group}/{name}")
+
+    def __iter__(self):
+        return iter(self._names())
+
+    def __len__(self):
+        return len(self._names())
 
 
 @dataclasses.dataclass

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import time as clock
 
 import jax
 import jax.numpy as jnp
@@ -28,7 +27,8 @@ from jaxmpm.contact import Interface
 from jaxmpm.keys import is_concrete
 from jaxmpm.parameters import scene_parameters
 from jaxmpm.probes import make_probes
-from jaxmpm.results import Result
+from jaxmpm.output import RunFile, deferred_interrupts
+from jaxmpm.results import FileSnapshots, Result
 from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps
 from jaxmpm.scene import Scene, body_speed
 from jaxmpm.seeding import seed_bodies
@@ -305,7 +305,7 @@ class Simulation:
         advance = self._advance_and_observe(params, initial_x)
         return scan_steps(advance, state, self.steps_per_output)
 
-    def run(self, params=None, initial=None, progress=True, save_to=None, autosave_seconds=60.0):
+    def run(self, params=None, initial=None, progress=True, save_to=None, resume=False):
         """Forward run with a progress bar; see `simulate`."""
         from tqdm.auto import tqdm
 
@@ -313,48 +313,61 @@ class Simulation:
         self.check_time_step(params, initial)
         state = self.initial_state(params) if initial is None else initial
         state = state.replace(**counters_at_start())
-        initial_x = state.particles.x
         fields = self.scene.snapshot_fields
-        probes = {name: [np.asarray(value)[None]] for name, value in self.observe_start(state).items()}
-        snapshots = [snapshot_fields(state.particles, initial_x, fields)]
-        last_save = clock.monotonic()
-        bar = tqdm(total=self.steps, unit="step", disable=not progress, desc=self.scene.name)
+        if resume:
+            if save_to is None:
+                raise SceneError("resume=True needs save_to, the file of the run to continue.")
+            writer, state, done, stored, initial_x = RunFile.reopen(save_to, self, params, state)
+            probes = {name: [values] for name, values in stored.items()}
+        else:
+            done, initial_x = 0, state.particles.x
+            probes = {name: [np.asarray(value)[None]] for name, value in self.observe_start(state).items()}
+            first = snapshot_fields(state.particles, initial_x, fields)
+            writer = None if save_to is None else RunFile.create(
+                save_to, self, params, state, {name: rows[0][0] for name, rows in probes.items()}, first)
+        snapshots = [] if writer is not None else [first]       # a file keeps them, memory does not
 
-        def partial_result(steps_done, message):
-            return Result.from_run(self, probes, snapshots, steps_done, complete=False, message=message)
+        def finish(complete, message):
+            steps = sum(len(rows) for rows in next(iter(probes.values()))) - 1
+            if writer is None:
+                return Result.from_run(self, probes, snapshots, steps, complete, message)
+            writer.finish(complete, message)
+            return Result(self.scene.to_toml(), self.time[: steps + 1],
+                          {name: np.concatenate(rows) for name, rows in probes.items()},
+                          FileSnapshots(writer.path), complete, message)
 
-        try:
-            for output in range(self.outputs):
-                state, values = self._advance(params, state, initial_x)
-                error_step = int(state.error_step)
-                if error_step >= 0:
-                    keep = error_step - output * self.steps_per_output - 1
+        bar = tqdm(total=self.steps, initial=done * self.steps_per_output, unit="step", disable=not progress,
+                   desc=self.scene.name)
+        with deferred_interrupts() as stop:
+            try:
+                for output in range(done, self.outputs):
+                    state, values = self._advance(params, state, initial_x)
+                    error_step = int(state.error_step)
+                    if error_step >= 0:
+                        keep = error_step - output * self.steps_per_output - 1
+                        for name, value in values.items():
+                            probes[name].append(np.asarray(value)[:keep])
+                        if writer is not None:
+                            writer.append_rows(values, keep)
+                        message = describe_failure(self, state)
+                        raise SimulationError(message, finish(False, message))
                     for name, value in values.items():
-                        probes[name].append(np.asarray(value)[:keep])
-                    message = describe_failure(self, state)
-                    result = partial_result(error_step - 1, message)
-                    if save_to is not None:
-                        result.save(save_to)
-                    raise SimulationError(message, result)
-                for name, value in values.items():
-                    probes[name].append(np.asarray(value))
-                snapshots.append(snapshot_fields(state.particles, initial_x, fields))
-                bar.update(self.steps_per_output)
-                if save_to is not None and clock.monotonic() - last_save > autosave_seconds:
-                    partial_result((output + 1) * self.steps_per_output, "run in progress").save(save_to)
-                    last_save = clock.monotonic()
-        except KeyboardInterrupt:
-            done = (len(snapshots) - 1) * self.steps_per_output
-            result = partial_result(done, f"interrupted at t = {done * self.dt:.6g} s")
-            if save_to is not None:
-                result.save(save_to)
-            raise
-        finally:
-            bar.close()
-        result = Result.from_run(self, probes, snapshots, self.steps, complete=True, message="")
-        if save_to is not None:
-            result.save(save_to)
-        return result
+                        probes[name].append(np.asarray(value))
+                    snapshot = snapshot_fields(state.particles, initial_x, fields)
+                    if writer is None:
+                        snapshots.append(snapshot)
+                    else:
+                        writer.append_output(values, snapshot, state, output + 1)
+                    bar.update(self.steps_per_output)
+                    if stop["requested"] and output + 1 < self.outputs:
+                        raise KeyboardInterrupt
+            except KeyboardInterrupt:
+                steps = sum(len(rows) for rows in next(iter(probes.values()))) - 1
+                finish(False, f"interrupted at t = {steps * self.dt:.6g} s")
+                raise
+            finally:
+                bar.close()
+        return finish(True, "")
 
 
 def describe_failure(sim: Simulation, state: State) -> str:
@@ -390,13 +403,14 @@ def instability_hint(sim: Simulation, state: State) -> str:
     )
 
 
-def simulate(scene: Scene, params=None, progress=True, save_to=None, autosave_seconds=60.0) -> Result:
+def simulate(scene: Scene, params=None, progress=True, save_to=None, resume=False) -> Result:
     """Run a scene forward and return its Result (time, probes, snapshots).
 
-    With `save_to`, the HDF5 file is written atomically every `autosave_seconds` and at the
-    end; a run that stops early (non-finite state, point off the grid, Ctrl-C) leaves a valid
-    file with complete = false. A failed run raises SimulationError, whose `.result` holds the
-    part computed."""
-    return Simulation(scene).run(
-        params=params, progress=progress, save_to=save_to, autosave_seconds=autosave_seconds
-    )
+    With `save_to`, the HDF5 file grows output by output (valid and readable throughout,
+    complete = false until the end) and the Result's snapshots stay in it (read when asked
+    for), so memory does not grow with the run. A run that stops early (non-finite state,
+    point off the grid, Ctrl-C or SIGTERM, taken between output intervals) keeps what it
+    computed; `resume=True` continues such a run from its last output and ends exactly as
+    the uninterrupted run would. A failed run raises SimulationError, whose `.result` holds
+    the part computed."""
+    return Simulation(scene).run(params=params, progress=progress, save_to=save_to, resume=resume)
