@@ -1,6 +1,7 @@
 """The `jaxmpm` command.
 
-    jaxmpm run SCENE.toml [-o OUT.h5] [--set sand.friction_angle=32 ...] [--quiet]
+    jaxmpm run SCENE.toml [-o OUT.h5] [--set sand.friction_angle=32 ...] [--resume] [--quiet]
+    jaxmpm check SCENE.toml [--set ...]
     jaxmpm calibrate CONFIG.toml [-o FIT.h5] [--resume] [--quiet]
     jaxmpm plot OUT.h5 [-o OUT.png | .gif | .mp4] [--field q] [--snapshot -1] [--probes] [--mirror]
     jaxmpm export OUT.h5 [-o OUT.pvd] [--revolve N]
@@ -46,6 +47,10 @@ def build_parser():
     run.add_argument("--resume", action="store_true",
                      help="continue the interrupted run in OUTPUT (same scene and --set values)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    check = commands.add_parser("check", help="read and check a scene (points, steps, memory) without running it")
+    check.add_argument("scene", help="scene file (TOML)")
+    check.add_argument("--set", dest="assignments", action="append", default=[], metavar="KEY=VALUE",
+                       help="override a scene value, as for run")
     calibrate = commands.add_parser("calibrate", help="fit scene parameters to observed probe histories")
     calibrate.add_argument("config", help="calibration file (TOML; keys: docs/scene_reference.md)")
     calibrate.add_argument("-o", "--output", help="fit HDF5 file (default: CONFIG name with .h5)")
@@ -75,17 +80,9 @@ def run_command(arguments):
     jax.config.update("jax_enable_x64", True)   # a program chooses its precision; scenes pick dtype
     import jaxmpm
 
-    scene = jaxmpm.load_scene(arguments.scene)
-    for assignment in arguments.assignments:
-        key, value = parse_assignment(assignment)
-        scene = scene.with_value(key, value)
     output = output_path(arguments.output, arguments.scene)
-    sim = jaxmpm.Simulation(scene)
-    print(
-        f"{scene.name}: {sim.point_count} points, {sim.steps} steps of {sim.dt:.4g} s, "
-        f"{scene.numerics.dtype}",
-        file=sys.stderr,
-    )
+    sim = checked_simulation(arguments)
+    print(describe(sim), file=sys.stderr)
     try:
         sim.run(progress=not arguments.quiet, save_to=output, resume=arguments.resume)
     except jaxmpm.SimulationError as error:
@@ -96,6 +93,36 @@ def run_command(arguments):
         print(f"jaxmpm: interrupted; partial output written to {output} (continue with --resume)", file=sys.stderr)
         return 130
     print(f"wrote {output}")
+    return 0
+
+
+def checked_simulation(arguments):
+    """The Simulation of the scene file with its --set values: every check, nothing compiled."""
+    import jaxmpm
+
+    scene = jaxmpm.load_scene(arguments.scene)
+    for assignment in arguments.assignments:
+        key, value = parse_assignment(assignment)
+        scene = scene.with_value(key, value)
+    return jaxmpm.Simulation(scene)
+
+
+def describe(sim) -> str:
+    scene = sim.scene
+    return (f"{scene.name}: {sim.point_count} points, {sim.steps} steps of {sim.dt:.4g} s, "
+            f"{scene.numerics.dtype}")
+
+
+def check_command(arguments):
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from jaxmpm.budget import estimate_bytes
+
+    sim = checked_simulation(arguments)
+    parts = estimate_bytes(sim.scene, sim.steps)
+    parts.pop("counts")
+    print(f"{describe(sim)}, {sim.outputs} outputs; about {sum(parts.values()) / 1e6:.3g} MB of arrays for a forward run: ok")
     return 0
 
 
@@ -201,7 +228,7 @@ def export_command(arguments):
     return 0
 
 
-COMMANDS = {"run": run_command, "calibrate": calibrate_command, "plot": plot_command, "export": export_command}
+COMMANDS = {"run": run_command, "check": check_command, "calibrate": calibrate_command, "plot": plot_command, "export": export_command}
 
 
 def main(argv=None):
@@ -209,11 +236,17 @@ def main(argv=None):
     try:
         return COMMANDS[arguments.command](arguments)
     except SceneError as error:
-        print(f"jaxmpm: error: {error}", file=sys.stderr)
+        print(f"jaxmpm: error: {one_line(str(error))}", file=sys.stderr)
         return USER_ERROR
     except OSError as error:
-        print(f"jaxmpm: error: {error.strerror}: {error.filename}", file=sys.stderr)
+        print(f"jaxmpm: error: {one_line(f'{error.strerror}: {error.filename}')}", file=sys.stderr)
         return USER_ERROR
+
+
+def one_line(text: str) -> str:
+    """The message with every unprintable character (line breaks, controls) escaped, so that
+    names and values the user wrote can never break it over lines."""
+    return "".join(char if char.isprintable() else repr(char)[1:-1] for char in text)
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import re
 from typing import Any
 
 import jax
@@ -21,6 +22,7 @@ import jax
 from jaxmpm.errors import SceneError
 
 REQUIRED = object()          # the default of a key that must be given
+PLAIN = re.compile(r"^[A-Za-z0-9_\-]+$")
 
 # kind -> how the reference describes a value of that kind
 KINDS = {
@@ -240,7 +242,9 @@ def _unknown_key_error(path, name, known, missing):
 
 
 def _join(path, name):
-    return f"{path}.{name}" if path else name
+    """A key's full path; a name that is not plain letters, digits, '_' or '-' is quoted."""
+    shown = name if PLAIN.match(name) else repr(name)
+    return f"{path}.{shown}" if path else shown
 
 
 def read_section(section: Section, data, path: str) -> dict:

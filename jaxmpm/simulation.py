@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmpm import state as state_bits
+from jaxmpm.budget import check_memory
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.grid import GridLayout
 from jaxmpm.initial_stress import depth_below_top, geostatic_stress, jaky_k0
@@ -113,9 +114,10 @@ class Simulation:
         self.scene = scene
         self.checkpointing = checkpointing
         self.dtype = jnp.dtype(scene.numerics.dtype)
-        self.seeds = seed_bodies(scene)
         self.dt, self.steps_per_output, self.outputs = time_stepping(scene)
         self.steps = self.steps_per_output * self.outputs
+        check_memory(scene, self.steps)          # before anything of that size is allocated
+        self.seeds = seed_bodies(scene)
         self.time = np.arange(self.steps + 1) * self.dt
         field, fields, interfaces = velocity_fields(scene)
         blocks = tuple(
