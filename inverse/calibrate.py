@@ -9,7 +9,8 @@ Residuals r_j = (y_sim(t_j) - y_obs_j) / sigma_j of every experiment form one ve
 sigma is the stated noise, or the channel's RMS when none is given. The loss is the mean
 half-square L(z) = sum_j r_j^2 / (2 M) in unconstrained coordinates z (see `parameters`).
 
-Optimisers, for one or several starts at once (vmapped):
+Optimisers, for one or several starts at once (vmapped; the starts are sharded over the
+devices when their number divides evenly, see `over_devices`):
   "lm"     Levenberg–Marquardt on r with forward-mode Jacobians (the default: a few
            parameters cost a few forward passes, no reverse-mode memory; docs/calibration.md
            measures it against the others);
@@ -37,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.sharding import NamedSharding, PartitionSpec
 
 from inverse import levenberg_marquardt
 from inverse.experiments import (
@@ -45,6 +47,7 @@ from inverse.experiments import (
 )
 from inverse.fit import ExperimentFit, Fit, gauss_newton
 from inverse.parameters import ParameterSpace
+from jaxmpm.ensembles import batch_mesh
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.parameters import resolve
 from jaxmpm.files import atomic_path
@@ -345,7 +348,7 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
                                       for i, e in enumerate(experiments))))
     if warning:
         warnings.warn(warning, stacklevel=3)
-    z0 = jnp.stack([space.to_unconstrained(jnp.asarray(v, dtype)) for v in start_values])
+    z0 = over_devices(jnp.stack([space.to_unconstrained(jnp.asarray(v, dtype)) for v in start_values]))
     fingerprint = _fingerprint(experiments, space, optimizer, learning_rate, start_values, data)
     started = clock.monotonic()
     state_shape = jax.eval_shape(problem.start, z0, data, bases)
@@ -358,7 +361,7 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
         run = Progress(0, np.asarray(z0), np.full(count, np.inf), np.zeros(count, bool), [""] * count,
                        [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(state)], [], [], [], [], [], [],
                        count * len(experiments) if optimizer in ("lm", "lbfgs") else 0, np.array(z0), np.full(count, np.inf))
-    z = jnp.asarray(run.z, dtype)
+    z = over_devices(jnp.asarray(run.z, dtype))
     saved = copy.deepcopy(run)          # the last complete iteration: what an interrupt keeps
     bar = tqdm(total=max_iterations, initial=run.iteration, unit="it", disable=not progress, desc="calibrate")
     try:
@@ -541,6 +544,16 @@ def _fingerprint(experiments, space, optimizer_name, learning_rate, start_values
         digest.update(np.asarray(leaf).tobytes())
     digest.update(np.asarray(start_values).tobytes())
     return f"{space.fingerprint()} {optimizer_name} {learning_rate} {digest.hexdigest()}"
+
+
+def over_devices(z):
+    """The starts (S, P) sharded over every device along S when S divides evenly (the
+    compiled iteration then runs its starts where they are, jaxmpm/ensembles.py); as they are
+    otherwise, or on one device."""
+    mesh = batch_mesh()
+    if mesh.devices.size == 1 or z.shape[0] % mesh.devices.size:
+        return z
+    return jax.device_put(z, NamedSharding(mesh, PartitionSpec("batch")))
 
 
 def _start_values(space: ParameterSpace, starts, seed):

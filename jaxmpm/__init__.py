@@ -1,12 +1,13 @@
 """jaxmpm: a differentiable Material Point Method for soil mechanics, in JAX.
 
 Public names: load_scene, Scene (and its parts), simulate, Simulation, Result, drive,
-Checkpointing, with_values, SceneError, SimulationError, and the material classes.
+Checkpointing, ensemble, with_values, SceneError, SimulationError, and the material classes.
 """
 
 __version__ = "0.1.0"
 
 from jaxmpm.driver import drive
+from jaxmpm.ensembles import ensemble
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.materials import DruckerPrager, LinearElastic
 from jaxmpm.results import Result
@@ -37,6 +38,7 @@ __all__ = [
     "Simulation",
     "SimulationError",
     "drive",
+    "ensemble",
     "load_scene",
     "simulate",
     "with_values",
