@@ -82,10 +82,10 @@ class RunFile:
                 _growing(probes, name, np.asarray(value)[None])
             snapshots = file.create_group("snapshots")
             _growing(snapshots, "time", np.zeros(1))
-            for block in sim.structure.bodies:
-                group = snapshots.create_group(block.name)
+            for body, (start, stop) in zip(sim.scene.bodies, sim.body_slices):
+                group = snapshots.create_group(body.name)
                 for field, values in first_snapshot.items():
-                    _growing(group, field, values[block.start : block.stop][None], compress=True)
+                    _growing(group, field, values[start:stop][None], compress=True)
             resume = file.create_group("resume")
             resume.create_dataset("initial_x", data=np.asarray(state.particles.x))
             for group_name, tree in (("params", params), *((slot, state) for slot in SLOTS)):
@@ -152,8 +152,8 @@ class RunFile:
             data.resize(rows, axis=0)
         snapshots = self.file["snapshots"]
         snapshots["time"].resize(outputs + 1, axis=0)
-        for block in self.sim.structure.bodies:
-            for data in snapshots[block.name].values():
+        for body in self.sim.scene.bodies:
+            for data in snapshots[body.name].values():
                 data.resize(outputs + 1, axis=0)
         self.file.attrs["steps_done"] = rows - 1
         self.file.flush()
@@ -174,9 +174,9 @@ class RunFile:
         self.append_rows(values)
         snapshots = self.file["snapshots"]
         _append(snapshots["time"], [outputs * self.sim.steps_per_output * self.sim.dt])
-        for block in self.sim.structure.bodies:
+        for body, (start, stop) in zip(self.sim.scene.bodies, self.sim.body_slices):
             for field, data in snapshot.items():
-                _append(snapshots[block.name][field], data[block.start : block.stop][None])
+                _append(snapshots[body.name][field], data[start:stop][None])
         slot = SLOTS[1 - SLOTS.index(str(self.file.attrs["resume_slot"]))]
         group = self.file["resume"][slot]
         for index, (_, leaf) in enumerate(leaves_with_names(state)):

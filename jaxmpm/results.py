@@ -75,11 +75,11 @@ class Result:
         probes = {name: np.concatenate(parts)[: steps_done + 1] for name, parts in probes.items()}
         kept = snapshots[: steps_done // sim.steps_per_output + 1]
         by_body = {
-            block.name: {
-                field: np.stack([snap[field][block.start : block.stop] for snap in kept])
+            body.name: {
+                field: np.stack([snap[field][start:stop] for snap in kept])
                 for field in sim.scene.snapshot_fields
             }
-            for block in sim.structure.bodies
+            for body, (start, stop) in zip(sim.scene.bodies, sim.body_slices)
         }
         times = np.arange(len(kept)) * sim.steps_per_output * sim.dt
         return cls(

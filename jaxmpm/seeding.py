@@ -71,3 +71,18 @@ def seed_bodies(scene) -> Seeds:
     if scene.geometry == "axisymmetric":
         volumes = volumes * positions[order, 0]
     return Seeds(positions[order], volumes, tuple(slices))
+
+
+def padded(seeds: Seeds, multiple: int) -> Seeds:
+    """`seeds` with inert points appended to the last body until their number is a multiple
+    of `multiple` (particles sharded evenly over devices). Each sits on the last point with
+    zero volume, hence zero mass: it gives the grid nothing (mass, momentum and stress all
+    weigh by mass or volume), takes the grid's motion like a tracer, and the outputs leave it
+    out (`Simulation.body_slices`)."""
+    extra = -len(seeds.positions) % multiple
+    if extra == 0:
+        return seeds
+    positions = np.concatenate([seeds.positions, np.repeat(seeds.positions[-1:], extra, axis=0)])
+    volumes = np.concatenate([seeds.volumes, np.zeros(extra)])
+    *rest, (start, stop) = seeds.slices
+    return Seeds(positions, volumes, (*rest, (start, stop + extra)))

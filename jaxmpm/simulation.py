@@ -18,6 +18,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxmpm import state as state_bits
 from jaxmpm.budget import check_memory
@@ -32,7 +33,7 @@ from jaxmpm.output import RunFile, deferred_interrupts
 from jaxmpm.results import FileSnapshots, Result
 from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps
 from jaxmpm.scene import Scene, body_speed
-from jaxmpm.seeding import seed_bodies
+from jaxmpm.seeding import padded, seed_bodies
 from jaxmpm.solver import BodyBlock, Structure, make_step
 from jaxmpm.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
 
@@ -109,7 +110,10 @@ def snapshot_fields(particles, initial_x, fields):
 class Simulation:
     """The differentiable handle on a scene. See the module docstring."""
 
-    def __init__(self, scene: Scene, checkpointing: Checkpointing = Checkpointing()):
+    def __init__(self, scene: Scene, checkpointing: Checkpointing = Checkpointing(), devices=None):
+        """`devices` (a list of two or more, e.g. `jax.devices()`): the points are sharded over
+        them along one mesh axis, the grid replicated; XLA combines each device's part of the
+        particle-to-grid sums (docs/devices.md)."""
         check_dtype(scene)
         self.scene = scene
         self.checkpointing = checkpointing
@@ -118,6 +122,10 @@ class Simulation:
         self.steps = self.steps_per_output * self.outputs
         check_memory(scene, self.steps)          # before anything of that size is allocated
         self.seeds = seed_bodies(scene)
+        self.body_slices = self.seeds.slices        # each body's points in outputs (no padding)
+        self.mesh = None if devices is None or len(devices) < 2 else Mesh(np.asarray(devices), ("points",))
+        if self.mesh is not None:
+            self.seeds = padded(self.seeds, self.mesh.devices.size)
         self.time = np.arange(self.steps + 1) * self.dt
         field, fields, interfaces = velocity_fields(scene)
         blocks = tuple(
@@ -149,7 +157,18 @@ class Simulation:
 
     @property
     def point_count(self) -> int:
-        return len(self.seeds.positions)
+        """The scene's material points (without the inert ones that pad a sharded state)."""
+        return self.body_slices[-1][1]
+
+    def place(self, state: State) -> State:
+        """The state laid out over the devices: per-point arrays sharded along the points,
+        everything else replicated (as it is, without `devices`)."""
+        if self.mesh is None:
+            return state
+        count = len(self.seeds.positions)
+        points, whole = NamedSharding(self.mesh, PartitionSpec("points")), NamedSharding(self.mesh, PartitionSpec())
+        return jax.tree_util.tree_map(
+            lambda leaf: jax.device_put(leaf, points if jnp.ndim(leaf) and jnp.shape(leaf)[0] == count else whole), state)
 
     def material_time_steps(self, params, initial: State | None = None) -> dict:
         """{material: h / (c_p + max speed of its free bodies)} for these parameter values [s];
@@ -208,15 +227,19 @@ class Simulation:
                 )
 
     def cast(self, params):
-        """Parameters as arrays of the scene's dtype (so values of any kind never retrace)."""
-        return jax.tree_util.tree_map(lambda value: jnp.asarray(value, self.dtype), params)
+        """Parameters as arrays of the scene's dtype (so values of any kind never retrace),
+        replicated over the devices of a sharded simulation."""
+        params = jax.tree_util.tree_map(lambda value: jnp.asarray(value, self.dtype), params)
+        if self.mesh is None:
+            return params
+        return jax.device_put(params, NamedSharding(self.mesh, PartitionSpec()))
 
     def initial_state(self, params=None) -> State:
         """The state at t = 0: seeded points at rest (or at their body's velocity; prescribed
         bodies at their velocity at t = 0), zero stress or geostatic; rigid bodies not yet
         moved. Masses follow params["materials"][material]["density"], so gradients reach it."""
         params = self.cast(self.params if params is None else params)
-        count, dtype = self.point_count, self.dtype
+        count, dtype = len(self.seeds.positions), self.dtype
         masses, velocities, stresses, histories, rigid = [], [], [], [], {}
         for block, body in zip(self.structure.bodies, self.scene.bodies):
             size = block.stop - block.start
@@ -243,7 +266,7 @@ class Simulation:
             history=tuple(histories),
             flags=jnp.zeros((count,), jnp.int32),
         )
-        return State(particles=particles, rigid=rigid, **counters_at_start())
+        return self.place(State(particles=particles, rigid=rigid, **counters_at_start()))
 
     def body_initial_stress(self, body, block, material):
         """(n_body, 3, 3) initial stress of one body: zero, or geostatic from its params."""
@@ -313,13 +336,14 @@ class Simulation:
 
         params = self.cast(self.params if params is None else params)
         self.check_time_step(params, initial)
-        state = self.initial_state(params) if initial is None else initial
+        state = self.initial_state(params) if initial is None else self.place(initial)
         state = state.replace(**counters_at_start())
         fields = self.scene.snapshot_fields
         if resume:
             if save_to is None:
                 raise SceneError("resume=True needs save_to, the file of the run to continue.")
             writer, state, done, stored, initial_x = RunFile.reopen(save_to, self, params, state)
+            state = self.place(state)
             probes = {name: [values] for name, values in stored.items()}
         else:
             done, initial_x = 0, state.particles.x
