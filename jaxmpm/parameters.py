@@ -20,6 +20,7 @@ from __future__ import annotations
 import difflib
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxmpm.errors import SceneError
@@ -95,5 +96,7 @@ def with_values(params: dict, values: dict) -> dict:
     for name, value in values.items():
         namespace, owner, key = resolve(params, name)
         result[namespace] = dict(result[namespace])
+        if isinstance(value, (list, tuple)):      # a vector written as a list, as in a scene file
+            value = jnp.asarray(value)
         result[namespace][owner] = dict(result[namespace][owner], **{key: value})
     return result

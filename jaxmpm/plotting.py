@@ -116,16 +116,19 @@ def colour_limits(snapshots, field, indices):
     return (low, high) if high > low else (low - 0.5, high + 0.5)
 
 
-def snapshot_figure(result, field=None, snapshot=-1, mirror=False):
+def snapshot_figure(result, field=None, snapshot=-1, mirror=False, ax=None):
     """A matplotlib figure of snapshot `snapshot` coloured by `field` (default: q, else the
     plastic strain, the displacement or the body). `mirror` (axisymmetric runs only) also
-    draws the mirror image about the axis: the whole diametral section."""
+    draws the mirror image about the axis: the whole diametral section. `ax`: draw into
+    these axes (e.g. one panel of `plt.subplots(1, 3)`) and return their figure."""
     snapshots = Snapshots(result)
     check_mirror(snapshots, mirror)
     field = field or default_field(snapshots)
     index = range(len(snapshots))[snapshot]
-    plt = pyplot()
-    figure, axes = plt.subplots(figsize=figure_size(snapshots.scene, mirror), layout="constrained")
+    if ax is None:
+        figure, axes = pyplot().subplots(figsize=figure_size(snapshots.scene, mirror), layout="constrained")
+    else:
+        figure, axes = ax.figure, ax
     artist = draw_points(axes, snapshots, field, index, colour_limits(snapshots, field, [index]), mirror)
     figure.colorbar(artist, ax=axes, label=f"{field} [{field_unit(snapshots, field)}]")
     axes.set_title(f"{snapshots.scene.name}: t = {snapshots.times[index]:.4g} s")

@@ -117,13 +117,14 @@ class Result:
                     group.create_dataset(field, data=values, compression="gzip", compression_opts=4)
         return path
 
-    def plot(self, field=None, snapshot=-1, mirror=False):
+    def plot(self, field=None, snapshot=-1, mirror=False, ax=None):
         """A matplotlib figure of one snapshot, points coloured by `field` (default q); see
         `jaxmpm.plotting` (in Jupyter the returned figure shows itself). `mirror=True`
-        (axisymmetric runs) also draws the mirror image about the axis."""
+        (axisymmetric runs) also draws the mirror image about the axis. `ax`: draw into these
+        matplotlib axes (one panel of a larger figure)."""
         from jaxmpm.plotting import snapshot_figure
 
-        return snapshot_figure(self, field, snapshot, mirror)
+        return snapshot_figure(self, field, snapshot, mirror, ax)
 
     def plot_probes(self):
         """A matplotlib figure of every probe history against time."""

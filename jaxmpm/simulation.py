@@ -332,7 +332,7 @@ class Simulation:
 
     def run(self, params=None, initial=None, progress=True, save_to=None, resume=False):
         """Forward run with a progress bar; see `simulate`."""
-        from tqdm.auto import tqdm
+        from jaxmpm.progress import progress_bar
 
         params = self.cast(self.params if params is None else params)
         self.check_time_step(params, initial)
@@ -362,8 +362,8 @@ class Simulation:
                           {name: np.concatenate(rows) for name, rows in probes.items()},
                           FileSnapshots(writer.path), complete, message)
 
-        bar = tqdm(total=self.steps, initial=done * self.steps_per_output, unit="step", disable=not progress,
-                   desc=self.scene.name)
+        bar = progress_bar(progress, total=self.steps, initial=done * self.steps_per_output, unit="step",
+                           desc=self.scene.name)
         with deferred_interrupts() as stop:
             try:
                 for output in range(done, self.outputs):

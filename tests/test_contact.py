@@ -500,6 +500,10 @@ def test_a_prescribed_velocity_beyond_the_time_step_is_refused():
     with pytest.raises(SceneError, match=r"params\['bodies'\]\['wall'\]\['velocity'\] reaches"):
         sim.probes(with_values(sim.params, {"bodies.wall.velocity": fast}))
     sim.check_time_step(sim.cast(sim.params))            # the scene's own values pass
+    # A velocity table written as nested lists, as in a scene file, is the same value.
+    table = [list(row) for row in np.asarray(sim.params["bodies"]["wall"]["velocity"])]
+    listed = with_values(sim.params, {"bodies.wall.velocity": table})
+    np.testing.assert_array_equal(sim.probes(listed)["thrust"], sim.probes()["thrust"])
 
 
 def test_calibration_names_reach_contact_friction():

@@ -154,6 +154,14 @@ def test_snapshot_figure_draws_the_stored_points_and_values(two_bodies):
     np.testing.assert_allclose(points.get_array(), tensors.von_mises(jnp.asarray(joined(result, "stress", -1))), rtol=1e-10)
     figure = plotting.snapshot_figure(result, field="sigma_yy", snapshot=1)
     np.testing.assert_allclose(figure.axes[0].collections[0].get_array(), joined(result, "stress", 1)[:, 1, 1])
+    # Panels of one figure (a notebook's side-by-side snapshots): each drawn into its own axes.
+    import matplotlib.pyplot as plt
+
+    panels, (first, last) = plt.subplots(1, 2)
+    assert result.plot(snapshot=0, ax=first) is panels and result.plot(ax=last) is panels
+    np.testing.assert_allclose(first.collections[0].get_offsets(), joined(result, "x", 0), rtol=1e-15)
+    np.testing.assert_allclose(last.collections[0].get_offsets(), joined(result, "x", -1), rtol=1e-15)
+    plt.close(panels)
 
 
 def test_cli_writes_png_gif_and_probe_plots(two_bodies, tmp_path):
