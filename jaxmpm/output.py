@@ -161,9 +161,10 @@ class RunFile:
     # ------------------------------------------------------------------ during the run
 
     def append_rows(self, values: dict, rows: int | None = None):
-        """Probe rows of the steps just run (the first `rows` of them, default all)."""
+        """Probe rows of the steps just run (the first `rows` of them, default all of an
+        output interval's)."""
         done = int(self.file.attrs["steps_done"])
-        rows = len(next(iter(values.values()))) if rows is None else rows
+        rows = self.sim.steps_per_output if rows is None else rows
         for name, value in values.items():
             _append(self.file["probes"][name], np.asarray(value)[:rows])
         _append(self.file["time"], self.sim.time[done + 1 : done + 1 + rows])

@@ -353,8 +353,10 @@ class Simulation:
                 save_to, self, params, state, {name: rows[0][0] for name, rows in probes.items()}, first)
         snapshots = [] if writer is not None else [first]       # a file keeps them, memory does not
 
+        steps_done = [done * self.steps_per_output]        # steps whose probe rows are kept
+
         def finish(complete, message):
-            steps = sum(len(rows) for rows in next(iter(probes.values()))) - 1
+            steps = steps_done[0]
             if writer is None:
                 return Result.from_run(self, probes, snapshots, steps, complete, message)
             writer.finish(complete, message)
@@ -371,12 +373,14 @@ class Simulation:
                     error_step = int(state.error_step)
                     if error_step >= 0:
                         keep = error_step - output * self.steps_per_output - 1
+                        steps_done[0] += keep
                         for name, value in values.items():
                             probes[name].append(np.asarray(value)[:keep])
                         if writer is not None:
                             writer.append_rows(values, keep)
                         message = describe_failure(self, state)
                         raise SimulationError(message, finish(False, message))
+                    steps_done[0] += self.steps_per_output
                     for name, value in values.items():
                         probes[name].append(np.asarray(value))
                     snapshot = snapshot_fields(state.particles, initial_x, fields)
@@ -388,8 +392,7 @@ class Simulation:
                     if stop["requested"] and output + 1 < self.outputs:
                         raise KeyboardInterrupt
             except KeyboardInterrupt:
-                steps = sum(len(rows) for rows in next(iter(probes.values()))) - 1
-                finish(False, f"interrupted at t = {steps * self.dt:.6g} s")
+                finish(False, f"interrupted at t = {steps_done[0] * self.dt:.6g} s")
                 raise
             finally:
                 bar.close()
