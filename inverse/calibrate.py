@@ -318,7 +318,7 @@ def _check_options(optimizer, max_iterations, checkpoint_every, gtol, ftol):
 
 def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, learning_rate,
                seed, checkpoint, checkpoint_every, resume, progress, callback):
-    from tqdm.auto import tqdm
+    from jaxmpm.progress import progress_bar
 
     _check_options(optimizer, max_iterations, checkpoint_every, gtol, ftol)
     dtypes = {e.sim.dtype for e in experiments}
@@ -363,7 +363,7 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
                        count * len(experiments) if optimizer in ("lm", "lbfgs") else 0, np.array(z0), np.full(count, np.inf))
     z = over_devices(jnp.asarray(run.z, dtype))
     saved = copy.deepcopy(run)          # the last complete iteration: what an interrupt keeps
-    bar = tqdm(total=max_iterations, initial=run.iteration, unit="it", disable=not progress, desc="calibrate")
+    bar = progress_bar(progress, total=max_iterations, initial=run.iteration, unit="it", desc="calibrate")
     try:
         while run.iteration < max_iterations and not run.done.all():
             tick = clock.monotonic()
