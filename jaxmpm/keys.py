@@ -225,6 +225,7 @@ def check_value(path, key: Key, value):
     else:
         check_range(path, value, *bounds)
 
+
 # --------------------------------------------------------------------------- reading
 
 
