@@ -44,16 +44,16 @@ region = {{ rectangle = [[0.0, 0.0], [2.0, 0.5]] }}
 sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(text), devices=jax.devices())
 params = sim.cast(sim.params)
 state = sim.initial_state(params)
-step = jax.jit(sim.step)
+# 50 steps in one program: one sharded program in flight at a time (several queued ones can
+# starve XLA:CPU's in-process all-reduce of threads on a 2-core machine: docs/devices.md)
+steps = jax.jit(lambda p, s: jax.lax.fori_loop(0, 50, lambda i, s: sim.step(p, s)[0], s))
 start = time.perf_counter()
-state = jax.block_until_ready(step(params, state)[0])
+state = jax.block_until_ready(steps(params, state))
 compile_seconds = time.perf_counter() - start
 best = float("inf")
 for repeat in range(3):
     start = time.perf_counter()
-    for _ in range(50):
-        state, _ = step(params, state)
-    jax.block_until_ready(state)
+    state = jax.block_until_ready(steps(params, state))
     best = min(best, (time.perf_counter() - start) / 50)
 print(json.dumps({"devices": len(jax.devices()), "points": sim.point_count, "compile": compile_seconds,
                   "step_ms": best * 1e3}))
