@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from jaxmpm.cli import main
 from tests.scenes import BLOCK
 
-SETTINGS = settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture],
+SETTINGS = settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture],
                     derandomize=True)
 BASE = tomllib.loads(BLOCK + """
 [materials.sand]
