@@ -10,7 +10,8 @@ sigma is the stated noise, or the channel's RMS when none is given. The loss is 
 half-square L(z) = sum_j r_j^2 / (2 M) in unconstrained coordinates z (see `parameters`).
 
 Optimisers, for one or several starts at once (vmapped; the starts are sharded over the
-devices when their number divides evenly, see `over_devices`):
+devices when their number divides evenly, see `over_devices`, and otherwise the experiments
+of a group run together are, `inverse.experiments.members_over_devices`):
   "lm"     Levenberg–Marquardt on r with forward-mode Jacobians (the default: a few
            parameters cost a few forward passes, no reverse-mode memory; docs/calibration.md
            measures it against the others);
@@ -43,11 +44,11 @@ from jax.sharding import NamedSharding, PartitionSpec
 from inverse import levenberg_marquardt
 from inverse.experiments import (
     base_parameters, check_observations, experiment_bases, experiments_from, group_experiments, layout_of,
-    problem_arguments, problem_residuals,
+    members_over_devices, problem_arguments, problem_residuals,
 )
 from inverse.fit import ExperimentFit, Fit, gauss_newton
 from inverse.parameters import ParameterSpace
-from jaxmpm.ensembles import batch_mesh
+from jaxmpm.ensembles import batch_mesh, is_spread, spread_over_devices
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.parameters import resolve
 from jaxmpm.files import atomic_path
@@ -348,7 +349,12 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
                                       for i, e in enumerate(experiments))))
     if warning:
         warnings.warn(warning, stacklevel=3)
-    z0 = over_devices(jnp.stack([space.to_unconstrained(jnp.asarray(v, dtype)) for v in start_values]))
+    z0 = jnp.stack([space.to_unconstrained(jnp.asarray(v, dtype)) for v in start_values])
+    # One device axis: the starts' when they divide evenly, else the experiments'.
+    if not is_spread(over_devices(z0)):
+        data, bases = members_over_devices(groups, data, bases)
+    place = functools.partial(over_devices, replicate=is_spread((data, bases)))
+    z0 = place(z0)
     fingerprint = _fingerprint(experiments, space, optimizer, learning_rate, start_values, data)
     started = clock.monotonic()
     state_shape = jax.eval_shape(problem.start, z0, data, bases)
@@ -357,11 +363,11 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
         run = load_checkpoint(checkpoint, fingerprint)
         state = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(leaf) for leaf in run.opt_leaves])
     else:
-        state = problem.start(z0, data, bases)
+        state = jax.block_until_ready(problem.start(z0, data, bases))     # one sharded program in flight
         run = Progress(0, np.asarray(z0), np.full(count, np.inf), np.zeros(count, bool), [""] * count,
                        [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(state)], [], [], [], [], [], [],
                        count * len(experiments) if optimizer in ("lm", "lbfgs") else 0, np.array(z0), np.full(count, np.inf))
-    z = over_devices(jnp.asarray(run.z, dtype))
+    z = place(jnp.asarray(run.z, dtype))
     saved = copy.deepcopy(run)          # the last complete iteration: what an interrupt keeps
     bar = progress_bar(progress, total=max_iterations, initial=run.iteration, unit="it", desc="calibrate")
     try:
@@ -546,14 +552,14 @@ def _fingerprint(experiments, space, optimizer_name, learning_rate, start_values
     return f"{space.fingerprint()} {optimizer_name} {learning_rate} {digest.hexdigest()}"
 
 
-def over_devices(z):
+def over_devices(z, replicate=False):
     """The starts (S, P) sharded over every device along S when S divides evenly (the
-    compiled iteration then runs its starts where they are, jaxmpm/ensembles.py); as they are
-    otherwise, or on one device."""
-    mesh = batch_mesh()
-    if mesh.devices.size == 1 or z.shape[0] % mesh.devices.size:
-        return z
-    return jax.device_put(z, NamedSharding(mesh, PartitionSpec("batch")))
+    compiled iteration then runs its starts where they are, jaxmpm/ensembles.py); otherwise
+    as they are, or a copy on every device with `replicate` (the experiments are spread: each
+    iteration then sees its inputs laid out alike and compiles once)."""
+    if replicate:
+        return jax.device_put(z, NamedSharding(batch_mesh(), PartitionSpec()))
+    return spread_over_devices(z)
 
 
 def _start_values(space: ParameterSpace, starts, seed):

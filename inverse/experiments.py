@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from inverse.observations import Observations, check_against, default_scale, load_observations
+from jaxmpm.ensembles import spread_over_devices
 from jaxmpm.errors import SceneError
 from jaxmpm.parameters import resolve, with_values
 
@@ -240,6 +241,15 @@ def problem_arguments(experiments, groups):
             data.append(jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *group_data))
             bases.append(jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *group_bases))
     return tuple(data), tuple(bases)
+
+
+def members_over_devices(groups, data, bases):
+    """(data, bases) with the member axis of each group of several experiments sharded over
+    the devices when the members divide evenly between them (jaxmpm/ensembles.py): each
+    device then runs its members' simulations, and only their residuals are gathered."""
+    spread = [spread_over_devices((d, b)) if len(group.members) > 1 else (d, b)
+              for group, d, b in zip(groups, data, bases)]
+    return tuple(d for d, _ in spread), tuple(b for _, b in spread)
 
 
 def experiment_bases(groups, bases, count):

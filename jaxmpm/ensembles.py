@@ -38,6 +38,23 @@ def batch_mesh(devices=None) -> Mesh:
     return Mesh(np.asarray(jax.devices() if devices is None else devices), ("batch",))
 
 
+def spread_over_devices(tree, devices=None):
+    """`tree` with every leaf's leading axis sharded over the "batch" mesh of `devices`
+    (default all) when that axis divides evenly by their number; as it is otherwise, or on
+    one device. A jitted function of the result then runs each slice where it lies."""
+    mesh = batch_mesh(devices)
+    sizes = {np.shape(leaf)[0] if np.ndim(leaf) else None for leaf in jax.tree_util.tree_leaves(tree)}
+    if mesh.devices.size == 1 or len(sizes) != 1 or None in sizes or sizes.pop() % mesh.devices.size:
+        return tree
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec("batch")))
+
+
+def is_spread(tree) -> bool:
+    """Whether some leaf of `tree` lies on more than one device."""
+    return any(len(leaf.sharding.device_set) > 1 for leaf in jax.tree_util.tree_leaves(tree)
+               if isinstance(leaf, jax.Array))
+
+
 def ensemble(sim, params_batch, devices=None) -> dict:
     """Probe histories {name: (B, T, k)} of `sim` for each of the B parameter sets of
     `params_batch` (a params pytree whose every value has a leading axis B, e.g. from

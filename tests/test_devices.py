@@ -44,6 +44,22 @@ for count in (4, 3):                      # even, and padded to a multiple of th
     }
 from inverse.calibrate import over_devices
 report["holding_starts"] = len(over_devices(jax.numpy.zeros((2, 1))).sharding.device_set)
+
+# A calibration of one start and two experiments of the same scene (twins: noise-free
+# synthetic data at young = 0.8e6, each with its own density): the experiments are laid over
+# the devices, and the fit recovers the value the data came from.
+import inverse
+from inverse.experiments import experiments_from, group_experiments, members_over_devices, problem_arguments
+truths = {density: jaxmpm.with_values(sim.params, {"soil.young": 0.8e6, "soil.density": density})
+          for density in (1700.0, 1900.0)}
+experiments = experiments_from([inverse.Experiment(sim, sim.run(truth, progress=False), set={"soil.density": density})
+                                for density, truth in truths.items()], None)
+fit_keys = {"soil.young": (0.3e6, 3.0e6)}
+groups = group_experiments(experiments, inverse.ParameterSpace([sim.params], fit_keys))
+data, bases = members_over_devices(groups, *problem_arguments(experiments, groups))
+report["holding_experiments"] = len(jax.tree_util.tree_leaves(data)[0].sharding.device_set)
+fit = inverse.calibrate(experiments, fit=fit_keys, max_iterations=10, progress=False)
+report["fitted_young"] = float(fit.params["soil.young"])
 print(json.dumps(report))
 """
 
@@ -95,6 +111,8 @@ def test_an_ensemble_on_two_devices_is_sharded_and_equals_its_members_run_alone(
     report = run_on_devices(CHILD)
     assert report["devices"] == 2
     assert report["holding_starts"] == 2              # calibration lays two starts over both devices
+    assert report["holding_experiments"] == 2         # ... and one start's two experiments
+    assert abs(report["fitted_young"] / 0.8e6 - 1) < 1e-6
     even, padded = report["4"], report["3"]
     # Four members on two devices: two rows on each, the result left where it was computed.
     assert even["shape"][0] == 4 and even["devices_holding"] == 2 and even["shard_rows"] == [2]
