@@ -1,11 +1,13 @@
 """jaxmpm: a differentiable Material Point Method for soil mechanics, in JAX.
 
 Public names: load_scene, Scene (and its parts), simulate, Simulation, Result, drive,
-Checkpointing, ensemble, with_values, SceneError, SimulationError, and the material classes.
+Checkpointing, ensemble, with_values, use_compilation_cache, SceneError, SimulationError, and the
+material classes.
 """
 
 __version__ = "0.1.0"
 
+from jaxmpm.compilation_cache import use_compilation_cache
 from jaxmpm.driver import drive
 from jaxmpm.ensembles import ensemble
 from jaxmpm.errors import SceneError, SimulationError
@@ -41,5 +43,6 @@ __all__ = [
     "ensemble",
     "load_scene",
     "simulate",
+    "use_compilation_cache",
     "with_values",
 ]

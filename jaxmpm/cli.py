@@ -80,6 +80,8 @@ def run_command(arguments):
     jax.config.update("jax_enable_x64", True)   # a program chooses its precision; scenes pick dtype
     import jaxmpm
 
+    jaxmpm.use_compilation_cache()
+
     output = output_path(arguments.output, arguments.scene)
     sim = checked_simulation(arguments)
     print(describe(sim), file=sys.stderr)
@@ -142,6 +144,8 @@ def calibrate_command(arguments):
     import jaxmpm
     import inverse
     from inverse.config import load_calibration
+
+    jaxmpm.use_compilation_cache()
 
     config = load_calibration(arguments.config)
     output = output_path(arguments.output, arguments.config)

@@ -1,8 +1,14 @@
 """Tests run with 64-bit JAX (scenes choose float32 or float64 themselves) and strict dtype
-promotion, so an accidental mix of dtypes inside the solver is an error, not a silent upcast."""
+promotion, so an accidental mix of dtypes inside the solver is an error, not a silent upcast.
+The CLI's compilation cache is off (tests/test_cli_and_output.py tests it in its own
+directory), so that no test reads programs another run left on disk."""
+
+import os
 
 import jax
 import pytest
+
+os.environ["JAXMPM_CACHE_DIR"] = "off"
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")

@@ -98,3 +98,32 @@ def test_failed_run_keeps_what_it_computed(tmp_path, capsys):
     assert np.all(np.isfinite(top))
     # the part kept is the true history: the point moved at the thrown speed until it left
     np.testing.assert_allclose(top[-1, 0], 40.0 * time[-1], rtol=0.05)
+
+
+def test_a_second_run_loads_every_program_from_the_compilation_cache(block_file, tmp_path):
+    # Every compilation is stored (no minimum compile time): the first run fills the cache; a
+    # second run of the same scene writes no new entry, so each of its programs was found
+    # there (a miss would have compiled and stored one), and its output is the same.
+    import os
+
+    cache = tmp_path / "cache"
+    environment = dict(os.environ, JAXMPM_CACHE_DIR=str(cache), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    entries = []
+    for name in ("first.h5", "second.h5"):
+        done = subprocess.run([sys.executable, "-m", "jaxmpm.cli", "run", str(block_file), "-o", str(tmp_path / name),
+                               "--quiet"], capture_output=True, text=True, cwd=tmp_path, env=environment)
+        assert done.returncode == 0, done.stderr[-2000:]
+        entries.append(sorted(path.name for path in cache.iterdir()))
+    assert entries[0] and entries[1] == entries[0]
+    first, second = jaxmpm.Result.load(tmp_path / "first.h5"), jaxmpm.Result.load(tmp_path / "second.h5")
+    for name in first.probes:
+        assert np.array_equal(first.probes[name], second.probes[name])
+
+
+def test_the_compilation_cache_directory_follows_the_environment(tmp_path):
+    from jaxmpm.compilation_cache import cache_directory
+
+    assert cache_directory({"JAXMPM_CACHE_DIR": "off", "HOME": str(tmp_path)}) is None
+    assert cache_directory({"JAXMPM_CACHE_DIR": str(tmp_path / "c")}) == tmp_path / "c"
+    assert cache_directory({"XDG_CACHE_HOME": str(tmp_path / "x")}) == tmp_path / "x" / "jaxmpm" / "xla"
+    assert cache_directory({"HOME": str(tmp_path)}) == tmp_path / ".cache" / "jaxmpm" / "xla"
