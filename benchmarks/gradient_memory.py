@@ -5,7 +5,8 @@
 For the elastic block of benchmarks/throughput.py (2,500 points here, float64) and rollouts of
 100 to 3,200 steps, compile jax.grad of a probe-history loss and read XLA's temporary buffer
 size (`memory_analysis().temp_size_in_bytes`) for
-- the default `Checkpointing()` (segments of ceil(sqrt(steps)) steps): expected ~ sqrt(steps);
+- `Checkpointing(step="recompute")` (segments of ceil(sqrt(steps)) steps, each step recomputed):
+  expected ~ sqrt(steps);
 - `Checkpointing(segment=steps)` (one segment: every step checkpointed, but all T states kept
   for the backward pass): expected ~ steps.
 `--large` measures instead the case the speed goal names: 16,384 points of Drucker-Prager sand,
@@ -84,7 +85,7 @@ def large_table(run_longest):
         print(rows[-1], flush=True)
     return "\n".join([
         "16,384 points of Drucker-Prager sand, bspline2 + APIC, float32 (the 16k block of the throughput "
-        f"table), default `Checkpointing()`, measured {datetime.date.today()} (JAX {jax.__version__}, "
+        f"table), `Checkpointing(step=\"recompute\")`, measured {datetime.date.today()} (JAX {jax.__version__}, "
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores):",
         "",
         "| steps | XLA temporary memory of the gradient | one gradient run: wall time, process peak RSS |",
@@ -107,7 +108,7 @@ def main():
         return
     rows = []
     for steps in STEPS:
-        sqrt_mb, points = temporary_megabytes(steps, jaxmpm.Checkpointing())
+        sqrt_mb, points = temporary_megabytes(steps, jaxmpm.Checkpointing(step="recompute"))
         flat_mb, _ = temporary_megabytes(steps, jaxmpm.Checkpointing(segment=steps))
         rows.append((steps, sqrt_mb, flat_mb))
         print(f"{steps:5d} steps: segments {sqrt_mb:8.1f} MB, one scan {flat_mb:8.1f} MB", flush=True)
@@ -121,7 +122,7 @@ def main():
         f"XLA temporary memory of the compiled gradient of a probe loss, elastic block of "
         f"{points} points, float64.",
         "",
-        "| steps | default `Checkpointing()` (segments of ceil(sqrt(steps))) | `Checkpointing(segment=steps)` |",
+        "| steps | `Checkpointing(step=\"recompute\")` (segments of ceil(sqrt(steps))) | `Checkpointing(segment=steps)` |",
         "|---:|---:|---:|",
         *[f"| {s} | {a:.1f} MB | {b:.1f} MB |" for s, a, b in rows],
         "",

@@ -11,6 +11,14 @@ import jax
 import jax.numpy as jnp
 
 
+STORE_BUDGET_BYTES = 256 * 1024**2   # "auto" stores a segment's step intermediates up to this size
+# Intermediates a step keeps for its backward pass, in values per point per stencil node:
+# measured from the compiled gradients' temporaries (store minus recompute, 20-step segments):
+# 294 values per point with 3 x 3 stencils (5,184 points in float32 and 484 in float64), 151
+# with 2 x 2; 38 s^2 covers both with a margin.
+STORED_VALUES_PER_STENCIL_NODE = 38
+
+
 @dataclasses.dataclass(frozen=True)
 class Checkpointing:
     """How reverse mode trades memory for recomputation (a static choice: changing it recompiles).
@@ -23,14 +31,25 @@ class Checkpointing:
     pass of compute.
 
     step: what the backward pass keeps of each step of the segment it differentiates:
-    "recompute" (the default: nothing, the step runs again), "store" (every intermediate: one
-    forward pass fewer, about 13 MB per step of a segment for 16k points in float32),
-    "names:stencil" (only the shape-function stencil) or "dots" (JAX's
-    dots_with_no_batch_dims_saveable policy). Measured in benchmarks/reverse_decomposition.py.
+    "auto" (the default: "store" when a segment's intermediates are estimated to fit in
+    STORE_BUDGET_BYTES, else "recompute"), "recompute" (nothing, the step runs again), "store"
+    (every intermediate: one forward pass fewer, 15-25 % faster gradients, about 7 MB per step
+    of a segment for 5k points in float32), "names:stencil" (only the shape-function stencil)
+    or "dots" (JAX's dots_with_no_batch_dims_saveable policy). Measured in
+    docs/benchmarks.md and benchmarks/reverse_decomposition.py. A calibration's starts run
+    under vmap, so their stored intermediates add up: S starts store S times as much.
     """
 
     segment: int | None = None
-    step: str = "recompute"
+    step: str = "auto"
+
+    def resolved(self, steps, points, support, itemsize):
+        """This policy with "auto" decided for a rollout of `steps` steps of `points` points
+        with s x s stencils (s = `support`) and values of `itemsize` bytes."""
+        if self.step != "auto":
+            return self
+        stored = self.segment_length(steps) * points * STORED_VALUES_PER_STENCIL_NODE * support**2 * itemsize
+        return dataclasses.replace(self, step="store" if stored <= STORE_BUDGET_BYTES else "recompute")
 
     def step_checkpoint(self, advance):
         """The per-step wrapper: "recompute" (jax.checkpoint, nothing saved), "store" (none:
@@ -46,6 +65,8 @@ class Checkpointing:
             return jax.checkpoint(advance, prevent_cse=False, policy=policy)
         if self.step == "dots":
             return jax.checkpoint(advance, prevent_cse=False, policy=jax.checkpoint_policies.dots_with_no_batch_dims_saveable)
+        if self.step == "auto":
+            raise ValueError('step = "auto" must be resolved for a rollout first (Checkpointing.resolved)')
         raise ValueError(f"unknown step checkpointing {self.step!r}")
 
     def segment_length(self, steps):

@@ -290,7 +290,9 @@ class Simulation:
 
     def _probes_from_state(self, params, initial):
         advance = self._advance_and_observe(params, initial.particles.x)
-        final, histories = checkpointed_rollout(advance, initial, self.steps, self.checkpointing)
+        checkpointing = self.checkpointing.resolved(self.steps, initial.particles.x.shape[0],
+                                                    self.structure.layout.shape.support, initial.particles.x.dtype.itemsize)
+        final, histories = checkpointed_rollout(advance, initial, self.steps, checkpointing)
         first = self.observe_start(initial)
         probes = {name: jnp.concatenate([first[name][None], histories[name]]) for name in first}
         return probes, final

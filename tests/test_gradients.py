@@ -103,14 +103,28 @@ def one_step_segments():
 
 
 # 14 steps: segments of 3 (the last one shorter), the default (7, a divisor), and one segment
-# longer than the run, against one step per segment.
-@pytest.mark.parametrize("segment", [3, None, 10_000])
-def test_checkpoint_segments_do_not_change_values_or_gradients(segment, one_step_segments):
-    sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK), jaxmpm.Checkpointing(segment=segment))
+# longer than the run, against one step per segment; each step's intermediates stored (what
+# "auto" picks for this small block) or recomputed in the backward pass.
+@pytest.mark.parametrize("segment, step", [(3, "auto"), (None, "auto"), (10_000, "auto"), (None, "recompute")])
+def test_checkpoint_segments_do_not_change_values_or_gradients(segment, step, one_step_segments):
+    sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK), jaxmpm.Checkpointing(segment=segment, step=step))
     value, gradient = jax.value_and_grad(lambda p: settlement_measure(sim, p))(sim.params)
     value_ref, gradient_ref = one_step_segments
     np.testing.assert_allclose(value, value_ref, rtol=1e-12)
     np.testing.assert_allclose(gradient["materials"]["soil"]["young"], gradient_ref["materials"]["soil"]["young"], rtol=1e-10)
+
+
+def test_auto_checkpointing_stores_step_intermediates_only_within_its_memory_budget():
+    from jaxmpm.rollout import STORE_BUDGET_BYTES
+
+    auto = jaxmpm.Checkpointing()
+    assert auto.resolved(steps=200, points=5_184, support=3, itemsize=4).step == "store"       # ~140 MB
+    assert auto.resolved(steps=10_000, points=16_384, support=3, itemsize=4).step == "recompute"  # ~2 GB
+    assert auto.resolved(steps=200, points=16_384, support=3, itemsize=8).step == "recompute"
+    assert jaxmpm.Checkpointing(step="recompute").resolved(200, 100, 2, 8).step == "recompute"
+    # the estimate at the budget's edge: 20-step segments of a point count just inside it
+    edge = STORE_BUDGET_BYTES // (20 * 38 * 9 * 4)
+    assert auto.resolved(400, edge, 3, 4).step == "store" and auto.resolved(400, edge + 1, 3, 4).step == "recompute"
 
 
 def test_reverse_mode_jit_drops_library_reductions_and_keeps_the_gradient():
