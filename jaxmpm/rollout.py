@@ -33,8 +33,8 @@ class Checkpointing:
     step: what the backward pass keeps of each step of the segment it differentiates:
     "auto" (the default: "store" when a segment's intermediates are estimated to fit in
     STORE_BUDGET_BYTES, else "recompute"), "recompute" (nothing, the step runs again), "store"
-    (every intermediate: one forward pass fewer, 15-25 % faster gradients, about 7 MB per step
-    of a segment for 5k points in float32), "names:stencil" (only the shape-function stencil)
+    (every intermediate: one forward pass fewer; gradients 15-25 % faster at 5k points, the
+    same at 100, about 7 MB per step of a segment for 5k points in float32), "names:stencil" (only the shape-function stencil)
     or "dots" (JAX's dots_with_no_batch_dims_saveable policy). Measured in
     docs/benchmarks.md and benchmarks/reverse_decomposition.py. A calibration's starts run
     under vmap, so their stored intermediates add up: S starts store S times as much.
