@@ -13,8 +13,9 @@ import jax.numpy as jnp
 
 STORE_BUDGET_BYTES = 256 * 1024**2   # "auto" stores a segment's step intermediates up to this size
 STORE_FROM_POINTS = 2_000            # ... for scenes of at least this many points: below, storing
-# saved little per gradient (nothing at 104 points, 13 % at 484) and cost a slower compile
+# saved little per gradient (nothing at 104 points, 2-13 % at 484) and cost a slower compile
 # (+1-5 s), so recomputing is faster over a calibration's few dozen gradients.
+
 # Intermediates a step keeps for its backward pass, in values per point per stencil node:
 # measured from the compiled gradients' temporaries (store minus recompute, 20-step segments):
 # 294 values per point with 3 x 3 stencils (5,184 points in float32 and 484 in float64), 151
@@ -34,13 +35,15 @@ class Checkpointing:
     pass of compute.
 
     step: what the backward pass keeps of each step of the segment it differentiates:
-    "auto" (the default: "store" for scenes of at least STORE_FROM_POINTS points whose
-    segment intermediates are estimated to fit in STORE_BUDGET_BYTES, else "recompute"), "recompute" (nothing, the step runs again), "store"
-    (every intermediate: one forward pass fewer; gradients 15-25 % faster at 5k points, 13 %
-    at 484, the same at 100, but 1-5 s more to compile; about 7 MB per step of a segment for 5k points in float32), "names:stencil" (only the shape-function stencil)
-    or "dots" (JAX's dots_with_no_batch_dims_saveable policy). Measured in
-    docs/benchmarks.md and benchmarks/reverse_decomposition.py. A calibration's starts run
-    under vmap, so their stored intermediates add up: S starts store S times as much.
+    "auto" (the default: "store" for scenes of at least STORE_FROM_POINTS points whose segment
+    intermediates are estimated to fit in STORE_BUDGET_BYTES, else "recompute");
+    "recompute" (nothing, the step runs again); "store" (every intermediate: one forward pass
+    fewer, gradients 15-25 % faster at 5k points, 2-13 % at 484, the same at 100, for 1-5 s
+    more compiling; about 7 MB per step of a segment for 5k points in float32);
+    "names:stencil" (only the shape-function stencil) or "dots" (JAX's
+    dots_with_no_batch_dims_saveable policy). Measured in docs/benchmarks.md and
+    benchmarks/reverse_decomposition.py. A calibration's starts run under vmap, so their
+    stored intermediates add up: S starts store S times as much.
     """
 
     segment: int | None = None
