@@ -97,6 +97,7 @@ class CompiledProblem:
     (z, state, loss at the incoming z (S,), ||dL/dz||_inf there (S,))."""
 
     residuals: object      # residuals(values (P,), data, bases) -> (M,)
+    linearization: object  # linearization(values (P,), data, bases) -> (r (M,), dr/dvalues (M, P)), forward mode
     start: object
     iterate: object
     losses: object         # losses(z (S, P), data, bases) -> (S,); None for "lm" (its state holds them)
@@ -133,6 +134,8 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
         start, iterate = jit_reverse_mode(jax.vmap(first, in_axes=(0, None, None))), jit_reverse_mode(batched(step))
     problem = CompiledProblem(
         residuals=residuals,
+        linearization=jax.jit(lambda values, data, bases: (residuals(values, data, bases),
+                                                           jax.jacfwd(residuals)(values, data, bases))),
         start=start,
         iterate=iterate,
         losses=None if optimizer_name == "lm" else jax.jit(jax.vmap(loss_of_z, in_axes=(0, None, None))),
@@ -453,12 +456,13 @@ def _finish(experiments, groups, space, problem, data, bases, run, state, start_
         raise SimulationError("every start of the calibration went non-finite; narrow the bounds or change the starts.")
     best = int(np.nanargmin(np.where(np.isfinite(final_losses), final_losses, np.nan)))
     values = np.asarray(space.to_physical(final_z[best]))
-    linearization = None
     if optimizer == "lm" and take_last[best]:
         linearization = physical_linearization(space, final_z[best], state.residuals[best], state.jacobian[best])
+    else:
+        linearization = problem.linearization(jnp.asarray(values, dtype), data, bases)
     covariance, jacobian = gauss_newton(
-        functools.partial(problem.residuals, data=data, bases=bases), values,
-        noise_known=all(e.observations.noise_known for e in experiments), linearization=linearization,
+        problem.residuals, values, noise_known=all(e.observations.noise_known for e in experiments),
+        linearization=linearization,
     )
     runs, warnings_found = [], [warning] if warning else []
     for index, (experiment, base) in enumerate(zip(experiments, experiment_bases(groups, bases, len(experiments)))):
