@@ -134,8 +134,8 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
         start, iterate = jit_reverse_mode(jax.vmap(first, in_axes=(0, None, None))), jit_reverse_mode(batched(step))
     problem = CompiledProblem(
         residuals=residuals,
-        linearization=jax.jit(lambda values, data, bases: (residuals(values, data, bases),
-                                                           jax.jacfwd(residuals)(values, data, bases))),
+        linearization=jax.jit(lambda values, data, bases: levenberg_marquardt.residuals_and_jacobian(
+            functools.partial(residuals, data=data, bases=bases), values)),
         start=start,
         iterate=iterate,
         losses=None if optimizer_name == "lm" else jax.jit(jax.vmap(loss_of_z, in_axes=(0, None, None))),
