@@ -18,11 +18,12 @@ their plain forward definitions (same values and derivatives, XLA's slower trans
 
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
 try:
     from jax._src import core
-    from jax._src.custom_derivatives import linear_call, linear_call_p
-    from jax._src.interpreters import batching
+    from jax._src.custom_derivatives import _linear_call_jvp_rule, linear_call, linear_call_p
+    from jax._src.interpreters import ad, batching
 except ImportError:          # pragma: no cover - a JAX without these private modules
     linear_call = None
 
@@ -38,6 +39,47 @@ def paired_linear(forward, transpose):
         return linear_call(forward, transpose, residuals, linear)
 
     return call
+
+
+def hand_reversed(function, adjoint):
+    """`function(*args)` whose reverse mode is `adjoint(args, cotangents) -> cotangents of
+    args` (written by hand), and whose forward mode is JAX's own jvp of `function`.
+
+    A custom JVP whose tangent map is a `paired_linear` map: forward mode evaluates it as
+    `jax.jvp(function)`, reverse mode transposes it by calling `adjoint` at the primal
+    inputs (its only residuals). Inputs whose tangent is a symbolic zero (e.g. a history
+    that starts at zero) are not linear inputs of the map: a transpose must only be asked for
+    cotangents of inputs that really carry a derivative. Without `linear_call`, plain
+    `function`."""
+    if linear_call is None:
+        return function
+
+    @jax.custom_jvp
+    def wrapped(*args):
+        return function(*args)
+
+    def rule(primals, tangents):
+        leaves, tree = jax.tree_util.tree_flatten(tuple(primals))
+        tangent_leaves = jax.tree_util.tree_leaves(tuple(tangents), is_leaf=lambda t: isinstance(t, SymbolicZero))
+        live = [not isinstance(t, SymbolicZero) for t in tangent_leaves]
+
+        def full(values):
+            """All tangent leaves: the live ones from `values`, zeros elsewhere."""
+            values = iter(values)
+            return tree.unflatten([next(values) if on else jnp.zeros_like(x) for x, on in zip(leaves, live)])
+
+        def tangent(primals, live_tangents):
+            return jax.jvp(function, primals, full(live_tangents))[1]
+
+        def transpose(primals, cotangents):
+            bars = jax.tree_util.tree_leaves(adjoint(primals, cotangents))
+            return [bar for bar, on in zip(bars, live) if on]
+
+        live_tangents = [t for t, on in zip(tangent_leaves, live) if on]
+        return function(*primals), paired_linear(tangent, transpose)(tuple(primals), live_tangents)
+
+    wrapped.defjvp(rule, symbolic_zeros=True)
+    return wrapped
 
 
 def _is_mapped(axis):
@@ -72,5 +114,31 @@ def _batch_linear_call(args, axes, *, callee, transpose_thunk, num_callee_consts
     return out, [0] * len(out)
 
 
+def _linear_call_jvp(primals, tangents, *, callee, transpose_thunk, num_callee_consts, num_res):
+    """jvp of a linear_call whose residuals carry tangents too (forward over reverse through a
+    hand-written adjoint, whose residuals are the primal inputs): f(r, x) is linear in x only,
+    so d f = f(r, dx) + (df/dr) dr, the first a linear_call (transposable in x), the second
+    JAX's jvp of the map in r at fixed x. With zero residual tangents, JAX's own rule."""
+    fixed = num_callee_consts + num_res
+    if all(type(t) is ad.Zero for t in tangents[:fixed]):
+        return _linear_call_jvp_rule(primals, tangents, callee=callee, transpose_thunk=transpose_thunk,
+                                     num_callee_consts=num_callee_consts, num_res=num_res)
+    parameters = dict(callee=callee, transpose_thunk=transpose_thunk, num_callee_consts=num_callee_consts, num_res=num_res)
+    out = linear_call_p.bind(*primals, **parameters)
+    linear_tangents = [ad.instantiate_zeros(t) for t in tangents[fixed:]]
+    along_linear = linear_call_p.bind(*primals[:fixed], *linear_tangents, **parameters)
+    live = [index for index, t in enumerate(tangents[:fixed]) if type(t) is not ad.Zero]
+
+    def of_live(*values):
+        args = list(primals)
+        for index, value in zip(live, values):
+            args[index] = value
+        return core.eval_jaxpr(callee.jaxpr, callee.consts, *args)
+
+    _, along_fixed = jax.jvp(of_live, [primals[i] for i in live], [tangents[i] for i in live])
+    return out, [a + b for a, b in zip(along_linear, along_fixed)]
+
+
 if linear_call is not None:
     batching.primitive_batchers[linear_call_p] = _batch_linear_call
+    ad.primitive_jvps[linear_call_p] = _linear_call_jvp

@@ -50,6 +50,7 @@ from jaxmpm.contact import Interface, resolve_interfaces
 from jaxmpm.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
 )
+from jaxmpm.materials.base import points_update
 from jaxmpm.state import Diagnostics, record_errors
 from jaxmpm.tensors import from_entries
 
@@ -470,8 +471,8 @@ def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
             histories.append(history)
             stretches.append(jnp.ones_like(stretch[points]))
             continue
-        update = jax.vmap(block.law.update, in_axes=(None, 0, 0, None, 0))
-        stress, history = update(params[block.material_name], particles.stress[points], gradient[points], dt, history)
+        update = points_update(block.law, dt)
+        stress, history = update(params[block.material_name], particles.stress[points], gradient[points], history)
         stresses.append(stress)
         histories.append(history)
         stretches.append(stretch[points])

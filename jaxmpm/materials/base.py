@@ -22,6 +22,10 @@ compiled code. `Material` gives every material the law's `update`, `init_state` 
 
 import dataclasses
 
+import jax
+import jax.numpy as jnp
+
+from jaxmpm.adjoints import hand_reversed
 from jaxmpm.keys import Key, check_value
 
 
@@ -59,3 +63,28 @@ class Material:
 
     def wave_speed(self, params):
         return self.law.wave_speed(params)
+
+
+def points_update(law, dt):
+    """`law.update` over every point: (params, stress (N, 3, 3), L (N, 3, 3), state) ->
+    (stress, state). When the law writes its reverse mode by hand (`constants(params)` and
+    the one-point `update_adjoint(constants, stress, L, dt, state, stress_bar, state_bar)`),
+    reverse mode uses it: per-point cotangents of the constants are summed over the points
+    and carried to the parameters by JAX. XLA's own reverse mode of a stress update emits many
+    small kernels (each parameter use becomes its own reduction); forward mode is unchanged."""
+    def plain(params, stress, velocity_gradient, state):
+        return jax.vmap(law.update, in_axes=(None, 0, 0, None, 0))(params, stress, velocity_gradient, dt, state)
+
+    if not hasattr(law, "update_adjoint"):
+        return plain
+
+    def adjoint(primals, cotangents):
+        params, stress, velocity_gradient, state = primals
+        constants, constants_vjp = jax.vjp(law.constants, params)
+        one_point = jax.vmap(law.update_adjoint, in_axes=(None, 0, 0, None, 0, 0, 0))
+        constants_bar, stress_bar, gradient_bar, state_bar = one_point(
+            constants, stress, velocity_gradient, dt, state, *cotangents)
+        (params_bar,) = constants_vjp(jax.tree_util.tree_map(lambda bar: jnp.sum(bar, axis=0), constants_bar))
+        return params_bar, stress_bar, gradient_bar, state_bar
+
+    return hand_reversed(plain, adjoint)

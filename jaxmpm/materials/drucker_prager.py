@@ -37,7 +37,7 @@ from jaxmpm import tensors
 from jaxmpm.errors import SceneError
 from jaxmpm.keys import Key, is_concrete
 from jaxmpm.materials.base import ELASTIC_KEYS, Material, check_keys
-from jaxmpm.materials.linear_elastic import bulk_and_shear_moduli, elastic_trial_entries, p_wave_speed
+from jaxmpm.materials.linear_elastic import elastic_moduli, elastic_trial_adjoint, elastic_trial_entries, p_wave_speed
 
 CONES = {
     # m as a function of sin(angle); each matches Mohr-Coulomb in one stress state.
@@ -196,10 +196,10 @@ class DruckerPragerLaw:
 
     def update(self, params, stress, velocity_gradient, dt, state):
         """One point: Jaumann rotation, elastic trial, plastic / viscoplastic correction."""
-        trial = elastic_trial_entries(params, stress, velocity_gradient, dt)
-        stress, increment = self.correct_entries(params, trial, dt)
-        stress = tensors.from_entries(stress)
-        return stress, {"plastic_strain": state["plastic_strain"] + increment}
+        constants = self.constants(params)
+        trial = elastic_trial_entries(constants, stress, velocity_gradient, dt)
+        returned = self.return_state(constants, trial, dt)
+        return tensors.from_entries(returned["stress"]), {"plastic_strain": state["plastic_strain"] + returned["increment"]}
 
     def correct(self, params, trial, dt):
         """Return the trial stress to the admissible set: (stress, plastic multiplier dl)."""
@@ -208,9 +208,23 @@ class DruckerPragerLaw:
 
     def correct_entries(self, params, trial, dt):
         """`correct` on and to the 9 entries of the stress."""
-        bulk, shear = bulk_and_shear_moduli(params["young"], params["poisson"])
-        m = cone_slope(self.cone, params["friction_angle"])
-        dilation_rate = bulk * cone_slope(self.cone, params["dilation_angle"])
+        state = self.return_state(self.constants(params), trial, dt)
+        return state["stress"], state["increment"]
+
+    def constants(self, params):
+        """The scalars the return reads (K, G, m, K m_psi, and gamma, N when viscoplastic):
+        what update_adjoint's cotangents are taken with respect to."""
+        constants = elastic_moduli(params)
+        constants["slope"] = cone_slope(self.cone, params["friction_angle"])
+        constants["dilation_rate"] = constants["bulk"] * cone_slope(self.cone, params["dilation_angle"])
+        if self.viscoplastic:
+            constants.update(fluidity=params["fluidity"], exponent=params["exponent"])
+        return constants
+
+    def return_state(self, constants, trial, dt):
+        """The return of the trial entries to the admissible set, with the intermediates its
+        adjoint reads: {"stress": 9 entries, "increment": dl, ...} (see the module docstring)."""
+        shear, m, dilation_rate = constants["shear"], constants["slope"], constants["dilation_rate"]
         pressure = -(trial[0] + trial[4] + trial[8]) / 3.0
         trial_deviator = tensors.deviator_entries(trial)
         deviatoric = tensors.von_mises_of_deviator(trial_deviator)
@@ -225,12 +239,11 @@ class DruckerPragerLaw:
         safe_pressure = jnp.where(to_cone, pressure, 1.0)
         safe_deviatoric = jnp.where(to_cone, deviatoric, 1.0)
 
-        fraction = 1.0
+        fraction, perzyna = 1.0, None
         if self.viscoplastic:
-            safe_rate = jnp.where(to_cone, params["fluidity"] * dt, 1.0)
-            fraction = perzyna_fraction(
-                safe_overstress, hardening, safe_pressure, dilation_rate, m, safe_rate, params["exponent"]
-            )
+            safe_rate = jnp.where(to_cone, constants["fluidity"] * dt, 1.0)
+            perzyna = (safe_overstress, hardening, safe_pressure, dilation_rate, m, safe_rate, constants["exponent"])
+            fraction = perzyna_fraction(*perzyna)
         multiplier = fraction * safe_overstress / hardening
         new_deviatoric = safe_deviatoric - 3.0 * shear * multiplier
         new_pressure = safe_pressure + dilation_rate * multiplier
@@ -240,4 +253,73 @@ class DruckerPragerLaw:
         stress = [jnp.where(to_cone, r, jnp.where(to_apex, jnp.zeros_like(t), t)) for r, t in zip(returned, trial)]
         apex_multiplier = deviatoric / (3.0 * shear)
         increment = jnp.where(to_cone, multiplier, jnp.where(to_apex, apex_multiplier, 0.0))
-        return stress, increment
+        return {"stress": stress, "increment": increment, "pressure": pressure, "deviator": trial_deviator,
+                "deviatoric": deviatoric, "safe_overstress": safe_overstress, "safe_deviatoric": safe_deviatoric,
+                "hardening": hardening, "to_cone": to_cone, "to_apex": to_apex, "fraction": fraction,
+                "perzyna": perzyna, "multiplier": multiplier, "ratio": ratio}
+
+    def update_adjoint(self, constants, stress, velocity_gradient, dt, state, stress_bar, state_bar):
+        """Reverse mode of `update` at one point, by hand: (constants_bar, stress_bar, L_bar,
+        state_bar). Recomputes the trial and the return, then runs their chain rule backwards:
+        sigma = r s - p' I on the cone (r = q'/q, q' = q - 3 G dl, p' = p + K m_psi dl,
+        dl = x f/H, f = q - m p, H = 3 G + m K m_psi; x = 1, or the Perzyna fraction, whose
+        cotangents come from its own implicit-function VJP), sigma = 0 at the apex
+        (dl = q / 3G), sigma = trial when elastic; then q = sqrt(3/2 s:s), s = dev(t), and the
+        elastic trial (elastic_trial_adjoint)."""
+        shear, m, dilation_rate = constants["shear"], constants["slope"], constants["dilation_rate"]
+        trial = elastic_trial_entries(constants, stress, velocity_gradient, dt)
+        r = self.return_state(constants, trial, dt)
+        cone, apex = r["to_cone"], r["to_apex"]
+        zero = jnp.zeros_like(r["pressure"])
+        out_bar = tensors.entries(stress_bar)
+        increment_bar = state_bar["plastic_strain"]
+
+        on_cone = [jnp.where(cone, value, zero) for value in out_bar]
+        ratio_bar = sum(b * s for b, s in zip(on_cone, r["deviator"]))
+        new_pressure_bar = -(on_cone[0] + on_cone[4] + on_cone[8])
+        new_deviatoric_bar = ratio_bar / r["safe_deviatoric"]
+        safe_deviatoric_bar = new_deviatoric_bar - ratio_bar * r["ratio"] / r["safe_deviatoric"]
+        multiplier_bar = jnp.where(cone, increment_bar, zero) - 3.0 * shear * new_deviatoric_bar + dilation_rate * new_pressure_bar
+        bars = {"shear": -3.0 * r["multiplier"] * new_deviatoric_bar, "dilation_rate": r["multiplier"] * new_pressure_bar}
+        safe_pressure_bar = new_pressure_bar
+        # dl = x f / H
+        hardening = r["hardening"]
+        fraction_bar = multiplier_bar * r["safe_overstress"] / hardening
+        safe_overstress_bar = multiplier_bar * r["fraction"] / hardening
+        hardening_bar = -multiplier_bar * r["multiplier"] / hardening
+        bars["slope"] = zero
+        if self.viscoplastic:
+            _, fraction_vjp = jax.vjp(perzyna_fraction, *r["perzyna"])
+            f_bar, h_bar, p_bar, rate_bar_, m_bar, gamma_dt_bar, exponent_bar = fraction_vjp(fraction_bar)
+            safe_overstress_bar = safe_overstress_bar + f_bar
+            hardening_bar = hardening_bar + h_bar
+            safe_pressure_bar = safe_pressure_bar + p_bar
+            bars["dilation_rate"] = bars["dilation_rate"] + rate_bar_
+            bars["slope"] = m_bar
+            bars["fluidity"] = jnp.where(cone, gamma_dt_bar * dt, zero)
+            bars["exponent"] = exponent_bar
+        # H = 3 G + m K m_psi
+        bars["shear"] = bars["shear"] + 3.0 * hardening_bar
+        bars["slope"] = bars["slope"] + dilation_rate * hardening_bar
+        bars["dilation_rate"] = bars["dilation_rate"] + m * hardening_bar
+        # f = q - m p (on the cone), and the safe stand-ins
+        overstress_bar = jnp.where(cone, safe_overstress_bar, zero)
+        deviatoric_bar = overstress_bar + jnp.where(cone, safe_deviatoric_bar, zero)
+        pressure_bar = jnp.where(cone, safe_pressure_bar, zero) - m * overstress_bar
+        bars["slope"] = bars["slope"] - r["pressure"] * overstress_bar
+        # apex: dl = q / 3G
+        at_apex = jnp.where(apex, increment_bar, zero)
+        deviatoric_bar = deviatoric_bar + at_apex / (3.0 * shear)
+        bars["shear"] = bars["shear"] - at_apex * r["deviatoric"] / (3.0 * shear * shear)
+        # q = sqrt(3/2 s:s) (gradient 0 at q = 0, as safe_sqrt), s = dev(t), p = -tr(t)/3
+        positive = r["deviatoric"] > 0.0
+        slope_q = jnp.where(positive, 1.5 * deviatoric_bar / jnp.where(positive, r["deviatoric"], 1.0), zero)
+        deviator_bar = [jnp.where(cone, r["ratio"], zero) * b + slope_q * s for b, s in zip(on_cone, r["deviator"])]
+        elastic = ~(cone | apex)
+        mean_bar = -pressure_bar / 3.0
+        trial_bar = [b + (mean_bar if index in tensors.DIAGONAL else 0.0) + jnp.where(elastic, o, zero)
+                     for index, (b, o) in enumerate(zip(tensors.deviator_entries(deviator_bar), out_bar))]
+        moduli_bar, stress_bar, gradient_bar = elastic_trial_adjoint(constants, stress, velocity_gradient, dt, trial_bar)
+        bars["bulk"] = moduli_bar["bulk"]
+        bars["shear"] = bars["shear"] + moduli_bar["shear"]
+        return bars, tensors.from_entries(stress_bar), tensors.from_entries(gradient_bar), state_bar

@@ -7,6 +7,7 @@ d = sym(L). Used for walls and piles, and as the elastic part of the soil models
 import dataclasses
 from typing import ClassVar
 
+import jax
 import jax.numpy as jnp
 
 from jaxmpm import tensors
@@ -18,9 +19,16 @@ def bulk_and_shear_moduli(young, poisson):
     return young / (3.0 * (1.0 - 2.0 * poisson)), young / (2.0 * (1.0 + poisson))
 
 
-def elastic_increment_entries(params, velocity_gradient, dt):
-    """Entries of dt (K tr(d) I + 2 G dev(d)), d = sym(L), from the 9 entries of L [Pa]."""
+def elastic_moduli(params):
+    """The constants the elastic trial reads: {"bulk": K, "shear": G} [Pa]."""
     bulk, shear = bulk_and_shear_moduli(params["young"], params["poisson"])
+    return {"bulk": bulk, "shear": shear}
+
+
+def elastic_increment_entries(moduli, velocity_gradient, dt):
+    """Entries of dt (K tr(d) I + 2 G dev(d)), d = sym(L), from the 9 entries of L [Pa];
+    moduli = elastic_moduli(params)."""
+    bulk, shear = moduli["bulk"], moduli["shear"]
     rate = [0.5 * (velocity_gradient[3 * i + j] + velocity_gradient[3 * j + i]) for i in range(3) for j in range(3)]
     volumetric = bulk * (rate[0] + rate[4] + rate[8])
     return [
@@ -31,15 +39,57 @@ def elastic_increment_entries(params, velocity_gradient, dt):
 
 def elastic_increment(params, rate_of_deformation, dt):
     """dt (K tr(d) I + 2 G dev(d)): the elastic stress increment for a strain-rate d [Pa]."""
-    return tensors.from_entries(elastic_increment_entries(params, tensors.entries(rate_of_deformation), dt))
+    return tensors.from_entries(elastic_increment_entries(elastic_moduli(params), tensors.entries(rate_of_deformation), dt))
 
 
-def elastic_trial_entries(params, stress, velocity_gradient, dt):
-    """elastic_trial on and to 9 entries (what the plastic corrections continue with)."""
+def elastic_trial_entries(moduli, stress, velocity_gradient, dt):
+    """elastic_trial on and to 9 entries (what the plastic corrections continue with);
+    moduli = elastic_moduli(params)."""
     cos, sin = tensors.in_plane_rotation(velocity_gradient, dt)
     rotated = tensors.rotate_entries(tensors.entries(stress), cos, sin)
-    increment = elastic_increment_entries(params, tensors.entries(velocity_gradient), dt)
+    increment = elastic_increment_entries(moduli, tensors.entries(velocity_gradient), dt)
     return [a + b for a, b in zip(rotated, increment)]
+
+
+def elastic_trial_adjoint(moduli, stress, velocity_gradient, dt, trial_bar):
+    """Reverse mode of elastic_trial_entries, by hand: from the cotangent of the 9 trial
+    entries, the cotangents (bulk, shear, stress entries, L entries). Stress and L are
+    (..., 3, 3); trial_bar is a list of 9 entries.
+
+    t = Q sigma Q^T + dt (2 G dev d + K tr(d) I), d = sym(L), Q the rotation (cos, sin) of
+    a = dt (L_yx - L_xy) / 4: sigma_bar = Q^T t_bar Q; the increment map is self-adjoint, so
+    d_bar = dt (2 G dev t_bar + K tr(t_bar) I) and L_bar = sym(d_bar); G_bar = 2 dt t_bar : dev d,
+    K_bar = dt tr(t_bar) tr(d); cos and sin get t_bar : dR/dcos and t_bar : dR/dsin (R is
+    bilinear in them), and a gets those through cos = (1 - a^2)/(1 + a^2), sin = 2a/(1 + a^2).
+    """
+    bulk, shear = moduli["bulk"], moduli["shear"]
+    e, grad = tensors.entries(stress), tensors.entries(velocity_gradient)
+    cos, sin = tensors.in_plane_rotation(velocity_gradient, dt)
+    stress_bar = tensors.rotate_entries(trial_bar, cos, -sin)
+
+    def along(cos_tangent, sin_tangent):
+        """t_bar : (dR/dcos cos_tangent + dR/dsin sin_tangent), R bilinear in (cos, sin)."""
+        _, change = jax.jvp(lambda c, s: tensors.rotate_entries(e, c, s), (cos, sin), (cos_tangent, sin_tangent))
+        return sum(b * v for b, v in zip(trial_bar, change))
+
+    one, zero = jnp.ones_like(cos), jnp.zeros_like(cos)
+    a = 0.25 * dt * (grad[3] - grad[1])
+    scale = 1.0 / (1.0 + a * a)
+    a_bar = along(one, zero) * (-4.0 * a * scale * scale) + along(zero, one) * (2.0 * (1.0 - a * a) * scale * scale)
+
+    rate = [0.5 * (grad[3 * i + j] + grad[3 * j + i]) for i in range(3) for j in range(3)]
+    rate_deviator = tensors.deviator_entries(rate)
+    trace_bar = trial_bar[0] + trial_bar[4] + trial_bar[8]
+    rate_bar = [dt * (2.0 * shear * value + (bulk * trace_bar if index in tensors.DIAGONAL else 0.0))
+                for index, value in enumerate(tensors.deviator_entries(trial_bar))]
+    gradient_bar = [0.5 * (rate_bar[3 * i + j] + rate_bar[3 * j + i]) for i in range(3) for j in range(3)]
+    gradient_bar[3] = gradient_bar[3] + 0.25 * dt * a_bar
+    gradient_bar[1] = gradient_bar[1] - 0.25 * dt * a_bar
+    moduli_bar = {
+        "bulk": dt * trace_bar * (rate[0] + rate[4] + rate[8]),
+        "shear": 2.0 * dt * sum(b * v for b, v in zip(trial_bar, rate_deviator)),
+    }
+    return moduli_bar, stress_bar, gradient_bar
 
 
 def elastic_trial(params, stress, velocity_gradient, dt):
@@ -47,7 +97,7 @@ def elastic_trial(params, stress, velocity_gradient, dt):
     (Jaumann, Hughes-Winget) plus the elastic increment; the trial state of every model.
     Written on the 9 entries (one split in, one stack out): reverse mode of per-entry reads,
     of matrix products and of broadcasts of scalars over 3x3 is slow on XLA:CPU."""
-    return tensors.from_entries(elastic_trial_entries(params, stress, velocity_gradient, dt))
+    return tensors.from_entries(elastic_trial_entries(elastic_moduli(params), stress, velocity_gradient, dt))
 
 
 def p_wave_speed(params):
@@ -67,6 +117,17 @@ class ElasticLaw:
     def update(self, params, stress, velocity_gradient, dt, state):
         """One point: rotate sigma with the step's spin, add the elastic increment."""
         return elastic_trial(params, stress, velocity_gradient, dt), state
+
+    def constants(self, params):
+        """What update_adjoint's cotangents are taken with respect to: the moduli K and G."""
+        return elastic_moduli(params)
+
+    def update_adjoint(self, constants, stress, velocity_gradient, dt, state, stress_bar, state_bar):
+        """Reverse mode of `update` at one point, by hand (see elastic_trial_adjoint):
+        (constants_bar, stress_bar, L_bar, state_bar)."""
+        constants_bar, stress_bar, gradient_bar = elastic_trial_adjoint(
+            constants, stress, velocity_gradient, dt, tensors.entries(stress_bar))
+        return constants_bar, tensors.from_entries(stress_bar), tensors.from_entries(gradient_bar), state_bar
 
     def wave_speed(self, params):
         return p_wave_speed(params)
