@@ -63,13 +63,12 @@ def hand_reversed(function, adjoint):
         tangent_leaves = jax.tree_util.tree_leaves(tuple(tangents), is_leaf=lambda t: isinstance(t, SymbolicZero))
         live = [not isinstance(t, SymbolicZero) for t in tangent_leaves]
 
-        def full(values):
-            """All tangent leaves: the live ones from `values`, zeros elsewhere."""
-            values = iter(values)
-            return tree.unflatten([next(values) if on else jnp.zeros_like(x) for x, on in zip(leaves, live)])
-
         def tangent(primals, live_tangents):
-            return jax.jvp(function, primals, full(live_tangents))[1]
+            # zeros made from the map's own residuals, not from the enclosing primals (under
+            # vmap those are batched tracers of an outer trace)
+            values = iter(live_tangents)
+            full = [next(values) if on else jnp.zeros_like(x) for x, on in zip(jax.tree_util.tree_leaves(primals), live)]
+            return jax.jvp(function, primals, tree.unflatten(full))[1]
 
         def transpose(primals, cotangents):
             bars = jax.tree_util.tree_leaves(adjoint(primals, cotangents))

@@ -78,8 +78,12 @@ def points_update(law, dt):
     if not hasattr(law, "update_adjoint"):
         return plain
 
+    keeps_history = getattr(law, "keeps_history", False)
+
     def adjoint(primals, cotangents):
         params, stress, velocity_gradient, state = primals
+        if keeps_history:
+            cotangents = (cotangents, jax.tree_util.tree_map(jnp.zeros_like, state))
         constants, constants_vjp = jax.vjp(law.constants, params)
         one_point = jax.vmap(law.update_adjoint, in_axes=(None, 0, 0, None, 0, 0, 0))
         constants_bar, stress_bar, gradient_bar, state_bar = one_point(
@@ -87,4 +91,9 @@ def points_update(law, dt):
         (params_bar,) = constants_vjp(jax.tree_util.tree_map(lambda bar: jnp.sum(bar, axis=0), constants_bar))
         return params_bar, stress_bar, gradient_bar, state_bar
 
-    return hand_reversed(plain, adjoint)
+    if not keeps_history:
+        return hand_reversed(plain, adjoint)
+    # A history the law passes through unchanged stays outside the custom derivative: its
+    # tangent must keep the batching of its primal (under vmap, inside loops).
+    new_stress = hand_reversed(lambda *args: plain(*args)[0], adjoint)
+    return lambda params, stress, velocity_gradient, state: (new_stress(params, stress, velocity_gradient, state), state)

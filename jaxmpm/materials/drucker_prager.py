@@ -290,11 +290,11 @@ class DruckerPragerLaw:
         bars["slope"] = zero
         if self.viscoplastic:
             _, fraction_vjp = jax.vjp(perzyna_fraction, *r["perzyna"])
-            f_bar, h_bar, p_bar, rate_bar_, m_bar, gamma_dt_bar, exponent_bar = fraction_vjp(fraction_bar)
+            f_bar, h_bar, p_bar, dilation_rate_bar, m_bar, gamma_dt_bar, exponent_bar = fraction_vjp(fraction_bar)
             safe_overstress_bar = safe_overstress_bar + f_bar
             hardening_bar = hardening_bar + h_bar
             safe_pressure_bar = safe_pressure_bar + p_bar
-            bars["dilation_rate"] = bars["dilation_rate"] + rate_bar_
+            bars["dilation_rate"] = bars["dilation_rate"] + dilation_rate_bar
             bars["slope"] = m_bar
             bars["fluidity"] = jnp.where(cone, gamma_dt_bar * dt, zero)
             bars["exponent"] = exponent_bar

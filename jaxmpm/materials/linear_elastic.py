@@ -110,6 +110,8 @@ def p_wave_speed(params):
 class ElasticLaw:
     """The static side of `LinearElastic`: no options, so one compiled update for every value."""
 
+    keeps_history = True      # update returns the history unchanged
+
     def init_state(self, count, dtype):
         """History variables: only the accumulated plastic strain (always zero here)."""
         return {"plastic_strain": jnp.zeros((count,), dtype)}
