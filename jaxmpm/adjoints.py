@@ -12,6 +12,10 @@ differentiated in forward mode, which the Levenberg-Marquardt Jacobians (`jax.jv
 `linear_call` primitive carries a custom transpose and keeps forward mode (its tangent is the
 same linear map), but JAX 0.10 gives it no batching rule; `_batch_linear_call` below adds one
 (vmap the map and its transpose alike), so `jax.vmap` over calibration starts works too.
+`hand_reversed(function, adjoint)` does the same for a nonlinear function with a hand-written
+reverse mode (the stress updates, `jaxmpm.materials.base.points_update`): a custom JVP whose
+tangent map is such a paired linear map, its residuals the primal inputs; `_linear_call_jvp`
+lets those residuals carry tangents (forward over reverse).
 `linear_call` lives in JAX's private modules: if a JAX release moves it, the maps fall back to
 their plain forward definitions (same values and derivatives, XLA's slower transpose).
 """
