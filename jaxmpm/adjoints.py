@@ -63,7 +63,7 @@ def hand_reversed(function, adjoint):
         return function(*args)
 
     def rule(primals, tangents):
-        leaves, tree = jax.tree_util.tree_flatten(tuple(primals))
+        tree = jax.tree_util.tree_structure(tuple(primals))
         tangent_leaves = jax.tree_util.tree_leaves(tuple(tangents), is_leaf=lambda t: isinstance(t, SymbolicZero))
         live = [not isinstance(t, SymbolicZero) for t in tangent_leaves]
 
