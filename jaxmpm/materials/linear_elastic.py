@@ -25,11 +25,16 @@ def elastic_moduli(params):
     return {"bulk": bulk, "shear": shear}
 
 
+def symmetric_entries(e):
+    """Entries of (t + t^T) / 2 from the 9 entries of t (d = sym(L); also its own adjoint)."""
+    return [0.5 * (e[3 * i + j] + e[3 * j + i]) for i in range(3) for j in range(3)]
+
+
 def elastic_increment_entries(moduli, velocity_gradient, dt):
     """Entries of dt (K tr(d) I + 2 G dev(d)), d = sym(L), from the 9 entries of L [Pa];
     moduli = elastic_moduli(params)."""
     bulk, shear = moduli["bulk"], moduli["shear"]
-    rate = [0.5 * (velocity_gradient[3 * i + j] + velocity_gradient[3 * j + i]) for i in range(3) for j in range(3)]
+    rate = symmetric_entries(velocity_gradient)
     volumetric = bulk * (rate[0] + rate[4] + rate[8])
     return [
         dt * (2.0 * shear * value + (volumetric if index in tensors.DIAGONAL else 0.0))
@@ -77,12 +82,12 @@ def elastic_trial_adjoint(moduli, stress, velocity_gradient, dt, trial_bar):
     scale = 1.0 / (1.0 + a * a)
     a_bar = along(one, zero) * (-4.0 * a * scale * scale) + along(zero, one) * (2.0 * (1.0 - a * a) * scale * scale)
 
-    rate = [0.5 * (grad[3 * i + j] + grad[3 * j + i]) for i in range(3) for j in range(3)]
+    rate = symmetric_entries(grad)
     rate_deviator = tensors.deviator_entries(rate)
     trace_bar = trial_bar[0] + trial_bar[4] + trial_bar[8]
     rate_bar = [dt * (2.0 * shear * value + (bulk * trace_bar if index in tensors.DIAGONAL else 0.0))
                 for index, value in enumerate(tensors.deviator_entries(trial_bar))]
-    gradient_bar = [0.5 * (rate_bar[3 * i + j] + rate_bar[3 * j + i]) for i in range(3) for j in range(3)]
+    gradient_bar = symmetric_entries(rate_bar)
     gradient_bar[3] = gradient_bar[3] + 0.25 * dt * a_bar
     gradient_bar[1] = gradient_bar[1] - 0.25 * dt * a_bar
     moduli_bar = {
