@@ -11,16 +11,29 @@ import jax
 import jax.numpy as jnp
 
 
-STORE_BUDGET_BYTES = 256 * 1024**2   # "auto" stores a segment's step intermediates up to this size
-STORE_FROM_POINTS = 2_000            # ... for scenes of at least this many points: below, storing
-# saved little per gradient (nothing at 104 points, 2-13 % at 484) and cost a slower compile
-# (+1-5 s), so recomputing is faster over a calibration's few dozen gradients.
+STORE_BUDGET_BYTES = 256 * 1024**2   # "auto" keeps a segment's step intermediates up to this size
 
-# Intermediates a step keeps for its backward pass, in values per point per stencil node:
-# measured from the compiled gradients' temporaries (store minus recompute, 20-step segments):
-# 294 values per point with 3 x 3 stencils (5,184 points in float32 and 484 in float64), 151
-# with 2 x 2; 38 s^2 covers both with a margin.
-STORED_VALUES_PER_STENCIL_NODE = 38
+# Elementwise arithmetic and layout operations: under step = "recompute_arithmetic" the backward
+# pass recomputes their results (XLA fuses the recomputation into its own kernels) instead of
+# reading them back from memory. Everything else (gathers and scatters, reductions, the stress
+# update's custom derivative, transcendental functions, comparisons) is kept.
+RECOMPUTED_PRIMITIVES = frozenset({
+    "add", "add_any", "sub", "mul", "neg", "div", "max", "min", "select_n", "convert_element_type",
+    "broadcast_in_dim", "reshape", "squeeze", "expand_dims", "concatenate", "slice", "pad", "transpose", "copy",
+})
+
+# What a step keeps for its backward pass under "recompute_arithmetic", in values per point per
+# stencil node, measured from the compiled gradients' temporaries ("recompute_arithmetic" minus
+# "recompute", 20-step segments, Drucker-Prager, 484 to 16,384 points): 115-126 values per point
+# with 3 x 3 stencils (13-14 s^2, float32 and float64), 59-61 with 2 x 2 (15 s^2); 18 s^2 covers
+# them with a margin.
+KEPT_VALUES_PER_STENCIL_NODE = 18
+
+
+def arithmetic_recomputed(primitive, *_, **__):
+    """Checkpoint policy of step = "recompute_arithmetic": keep every intermediate except the
+    results of RECOMPUTED_PRIMITIVES."""
+    return primitive.name not in RECOMPUTED_PRIMITIVES
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,15 +48,17 @@ class Checkpointing:
     pass of compute.
 
     step: what the backward pass keeps of each step of the segment it differentiates:
-    "auto" (the default: "store" for scenes of at least STORE_FROM_POINTS points whose segment
-    intermediates are estimated to fit in STORE_BUDGET_BYTES, else "recompute");
+    "auto" (the default: "recompute_arithmetic" when the segment's kept intermediates are
+    estimated to fit in STORE_BUDGET_BYTES, else "recompute");
+    "recompute_arithmetic" (every intermediate but elementwise arithmetic, which the backward
+    recomputes inside its own kernels: gradients 15-30 % faster than "recompute" from 100 to
+    16k points, for ~460 bytes per point per step of a segment in float32 with 3 x 3 stencils);
     "recompute" (nothing, the step runs again); "store" (every intermediate: one forward pass
-    fewer, gradients 15-25 % faster at 5k points, 2-13 % at 484, the same at 100, for 1-5 s
-    more compiling; about 7 MB per step of a segment for 5k points in float32);
-    "names:stencil" (only the shape-function stencil) or "dots" (JAX's
-    dots_with_no_batch_dims_saveable policy). Measured in docs/benchmarks.md and
+    fewer, but reading the stored products back cost more than recomputing them, and 2.5x the
+    memory of "recompute_arithmetic"); "names:stencil" (only the shape-function stencil) or
+    "dots" (JAX's dots_with_no_batch_dims_saveable policy). Measured in docs/benchmarks.md and
     benchmarks/reverse_decomposition.py. A calibration's starts run under vmap, so their
-    stored intermediates add up: S starts store S times as much.
+    kept intermediates add up: S starts keep S times as much.
     """
 
     segment: int | None = None
@@ -54,16 +69,18 @@ class Checkpointing:
         with s x s stencils (s = `support`) and values of `itemsize` bytes."""
         if self.step != "auto":
             return self
-        stored = self.segment_length(steps) * points * STORED_VALUES_PER_STENCIL_NODE * support**2 * itemsize
-        store = points >= STORE_FROM_POINTS and stored <= STORE_BUDGET_BYTES
-        return dataclasses.replace(self, step="store" if store else "recompute")
+        kept = self.segment_length(steps) * points * KEPT_VALUES_PER_STENCIL_NODE * support**2 * itemsize
+        return dataclasses.replace(self, step="recompute_arithmetic" if kept <= STORE_BUDGET_BYTES else "recompute")
 
     def step_checkpoint(self, advance):
         """The per-step wrapper: "recompute" (jax.checkpoint, nothing saved), "store" (none:
-        every residual of the segment's steps is kept), "names:a+b" (save those
+        every residual of the segment's steps is kept), "recompute_arithmetic" (jax.checkpoint
+        with the arithmetic_recomputed policy), "names:a+b" (save those
         checkpoint_name'd values), "dots" (dots_with_no_batch_dims_saveable)."""
         if self.step == "store":
             return advance
+        if self.step == "recompute_arithmetic":
+            return jax.checkpoint(advance, prevent_cse=False, policy=arithmetic_recomputed)
         if self.step == "recompute":
             return jax.checkpoint(advance, prevent_cse=False)
         if self.step.startswith("names:"):

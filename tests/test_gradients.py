@@ -103,9 +103,10 @@ def one_step_segments():
 
 
 # 14 steps: segments of 3 (the last one shorter), the default (7, a divisor), and one segment
-# longer than the run, against one step per segment; each step recomputed in the backward
-# pass (what "auto" picks for this small block) or its intermediates stored.
-@pytest.mark.parametrize("segment, step", [(3, "auto"), (None, "auto"), (10_000, "auto"), (None, "store")])
+# longer than the run, against one step per segment; each step's elementwise arithmetic
+# recomputed in the backward pass (what "auto" picks for this small block), the whole step
+# recomputed, or all its intermediates stored.
+@pytest.mark.parametrize("segment, step", [(3, "auto"), (None, "auto"), (10_000, "auto"), (None, "store"), (None, "recompute")])
 def test_checkpoint_segments_do_not_change_values_or_gradients(segment, step, one_step_segments):
     sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK), jaxmpm.Checkpointing(segment=segment, step=step))
     value, gradient = jax.value_and_grad(lambda p: settlement_measure(sim, p))(sim.params)
@@ -114,18 +115,20 @@ def test_checkpoint_segments_do_not_change_values_or_gradients(segment, step, on
     np.testing.assert_allclose(gradient["materials"]["soil"]["young"], gradient_ref["materials"]["soil"]["young"], rtol=1e-10)
 
 
-def test_auto_checkpointing_stores_step_intermediates_only_within_its_memory_budget():
-    from jaxmpm.rollout import STORE_BUDGET_BYTES, STORE_FROM_POINTS
+def test_auto_checkpointing_keeps_step_intermediates_only_within_its_memory_budget():
+    from jaxmpm.rollout import KEPT_VALUES_PER_STENCIL_NODE, STORE_BUDGET_BYTES
 
     auto = jaxmpm.Checkpointing()
-    assert auto.resolved(steps=200, points=5_184, support=3, itemsize=4).step == "store"       # ~140 MB
-    assert auto.resolved(steps=200, points=STORE_FROM_POINTS - 1, support=3, itemsize=4).step == "recompute"
-    assert auto.resolved(steps=10_000, points=16_384, support=3, itemsize=4).step == "recompute"  # ~2 GB
-    assert auto.resolved(steps=200, points=16_384, support=3, itemsize=8).step == "recompute"
+    kept = "recompute_arithmetic"
+    assert auto.resolved(steps=200, points=5_184, support=3, itemsize=4).step == kept          # ~67 MB
+    assert auto.resolved(steps=200, points=100, support=2, itemsize=8).step == kept
+    assert auto.resolved(steps=200, points=16_384, support=3, itemsize=4).step == kept         # ~212 MB
+    assert auto.resolved(steps=10_000, points=16_384, support=3, itemsize=4).step == "recompute"  # ~1.1 GB
+    assert auto.resolved(steps=200, points=16_384, support=3, itemsize=8).step == "recompute"    # ~425 MB
     assert jaxmpm.Checkpointing(step="recompute").resolved(200, 100, 2, 8).step == "recompute"
     # the estimate at the budget's edge: 20-step segments of a point count just inside it
-    edge = STORE_BUDGET_BYTES // (20 * 38 * 9 * 4)
-    assert auto.resolved(400, edge, 3, 4).step == "store" and auto.resolved(400, edge + 1, 3, 4).step == "recompute"
+    edge = STORE_BUDGET_BYTES // (20 * KEPT_VALUES_PER_STENCIL_NODE * 9 * 4)
+    assert auto.resolved(400, edge, 3, 4).step == kept and auto.resolved(400, edge + 1, 3, 4).step == "recompute"
 
 
 def test_reverse_mode_jit_drops_library_reductions_and_keeps_the_gradient():
