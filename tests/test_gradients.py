@@ -121,7 +121,8 @@ def test_auto_checkpointing_keeps_step_intermediates_only_within_its_memory_budg
     auto = jaxmpm.Checkpointing()
     kept = "recompute_arithmetic"
     assert auto.resolved(steps=200, points=5_184, support=3, itemsize=4).step == kept          # ~67 MB
-    assert auto.resolved(steps=200, points=100, support=2, itemsize=8).step == kept
+    assert auto.resolved(steps=200, points=100, support=2, itemsize=8) == jaxmpm.Checkpointing(200, kept)   # one segment
+    assert auto.resolved(steps=200, points=5_184, support=3, itemsize=4).segment is None      # ~670 MB in one
     assert auto.resolved(steps=200, points=16_384, support=3, itemsize=4).step == kept         # ~212 MB
     assert auto.resolved(steps=10_000, points=16_384, support=3, itemsize=4).step == "recompute"  # ~1.1 GB
     assert auto.resolved(steps=200, points=16_384, support=3, itemsize=8).step == "recompute"    # ~425 MB
