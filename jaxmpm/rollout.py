@@ -53,8 +53,8 @@ class Checkpointing:
     step: what the backward pass keeps of each step of the segment it differentiates:
     "auto" (the default: "recompute_arithmetic" when the segment's kept intermediates are
     estimated to fit in STORE_BUDGET_BYTES, else "recompute"; and, with no segment given,
-    one segment when the whole rollout's fit: gradients of small scenes 20 % faster and
-    compiled 1.5 s sooner);
+    one segment when the whole rollout's fit: gradients of small scenes about 20 % faster and
+    compiled 2-3 s sooner);
     "recompute_arithmetic" (every intermediate but elementwise arithmetic, which the backward
     recomputes inside its own kernels: gradients 15-30 % faster than "recompute" from 100 to
     16k points, for ~460 bytes per point per step of a segment in float32 with 3 x 3 stencils);

@@ -102,11 +102,13 @@ def one_step_segments():
     return jax.value_and_grad(lambda p: settlement_measure(reference, p))(reference.params)
 
 
-# 14 steps: segments of 3 (the last one shorter), the default (7, a divisor), and one segment
-# longer than the run, against one step per segment; each step's elementwise arithmetic
-# recomputed in the backward pass (what "auto" picks for this small block), the whole step
-# recomputed, or all its intermediates stored.
-@pytest.mark.parametrize("segment, step", [(3, "auto"), (None, "auto"), (10_000, "auto"), (None, "store"), (None, "recompute")])
+# 14 steps: segments of 3 (the last one shorter), the default (7, a divisor), one segment
+# (what "auto" picks for this small block, or a segment longer than the run), against one step
+# per segment; each step's elementwise arithmetic recomputed in the backward pass (what "auto"
+# picks), the whole step recomputed, or all its intermediates stored.
+@pytest.mark.parametrize("segment, step", [
+    (3, "auto"), (None, "auto"), (10_000, "auto"), (None, "recompute_arithmetic"), (None, "store"), (None, "recompute"),
+])
 def test_checkpoint_segments_do_not_change_values_or_gradients(segment, step, one_step_segments):
     sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK), jaxmpm.Checkpointing(segment=segment, step=step))
     value, gradient = jax.value_and_grad(lambda p: settlement_measure(sim, p))(sim.params)
