@@ -49,25 +49,37 @@ class GridLayout:
 
     def local(self, positions):
         """Positions in cell units from the origin, (N, 2)."""
-        return (positions - jnp.asarray(self.origin, positions.dtype)) / self.cell
+        return jnp.stack(self.local_along(positions), axis=1)
+
+    def local_along(self, positions):
+        """(x, y) of the positions (N, 2) in cell units from the origin, each (N,).
+
+        Every grid constant in the step's stencil arithmetic is a Python scalar, never a small
+        array: an array the step closes over becomes an operand of the loops around the step
+        (lax.scan hoists it, and so does reverse mode), which XLA:CPU does not fold back into
+        a constant inside nested loops (the segments of a checkpointed rollout). The stencil's
+        fused kernels, which recompute each point's base node at every stencil entry, ran 2x
+        slower there, the whole step ~20 % (docs/benchmarks.md, 2026-12-03)."""
+        along_x, along_y = (part[:, 0] for part in jnp.split(positions, 2, axis=1))
+        return (along_x - self.origin[0]) / self.cell, (along_y - self.origin[1]) / self.cell
 
     def stencil(self, positions):
-        return stencil(self.shape, self.local(positions) + self.ghost, self.nodes, self.cell)
+        local_x, local_y = self.local_along(positions)
+        return stencil(self.shape, (local_x + self.ghost, local_y + self.ghost), self.nodes, self.cell)
 
     def node_offsets(self, base, positions, support):
         """x_I - x_p along x and along y for each point's s x s stencil nodes: (2, N, s, s) [m]."""
-        offsets = jnp.arange(support, dtype=positions.dtype)
-        first = (base - self.ghost).astype(positions.dtype)
-        corner = jnp.asarray(self.origin, positions.dtype) + first * self.cell - positions
-        along_x = corner[:, None, 0] + offsets * self.cell
-        along_y = corner[:, None, 1] + offsets * self.cell
+        along = []
+        for axis, part in enumerate(jnp.split(positions, 2, axis=1)):
+            corner = self.origin[axis] + (base[:, axis] - self.ghost).astype(positions.dtype) * self.cell - part[:, 0]
+            along.append(jnp.stack([corner + node * self.cell for node in range(support)], axis=1))
         shape = (len(positions), support, support)
-        return jnp.stack([jnp.broadcast_to(along_x[:, :, None], shape), jnp.broadcast_to(along_y[:, None, :], shape)])
+        return jnp.stack([jnp.broadcast_to(along[0][:, :, None], shape), jnp.broadcast_to(along[1][:, None, :], shape)])
 
     def outside(self, positions):
         """(N,) bool: the point has left the grid."""
-        local = self.local(positions)
-        return jnp.any((local < 0.0) | (local > jnp.asarray(self.cells, local.dtype)), axis=1)
+        local_x, local_y = self.local_along(positions)
+        return (local_x < 0.0) | (local_x > self.cells[0]) | (local_y < 0.0) | (local_y > self.cells[1])
 
 
 def node_keys(base, nodes, field=None):

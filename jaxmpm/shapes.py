@@ -42,8 +42,8 @@ class Linear:
     reach: ClassVar[float] = 0.0     # base node = floor(position - reach)
 
     def along(self, offset):
-        """1-D values and slopes d/dr (per cell) at the stencil nodes, (N, s, 2) each; `offset`
-        is the position minus the base node, in cells."""
+        """1-D values and slopes d/dr (per cell) at the stencil nodes, (N, s) each; `offset`
+        (N,) is the position minus the base node along one axis, in cells."""
         return jnp.stack([1.0 - offset, offset], axis=1), jnp.stack([-jnp.ones_like(offset), jnp.ones_like(offset)], axis=1)
 
 
@@ -99,12 +99,17 @@ def make_shape(name, ppc):
 
 
 def stencil(shape, local, nodes, cell):
-    """The stencil of points at `local` (N, 2) positions in cells from node 0 of a grid with
-    `nodes` (nx, ny) nodes (ghosts included); cell [m]."""
-    upper = jnp.asarray(nodes, jnp.int32) - shape.support
-    base = jnp.clip(jnp.floor(local - shape.reach).astype(jnp.int32), 0, upper)
-    along, slope = shape.along(local - base.astype(local.dtype))     # (N, s, 2 axes)
-    slope = slope / cell
-    weights = along[:, :, None, 0] * along[:, None, :, 1]
-    gradients = jnp.stack([slope[:, :, None, 0] * along[:, None, :, 1], along[:, :, None, 0] * slope[:, None, :, 1]])
+    """The stencil of points at `local` = (x, y), each (N,), positions in cells from node 0 of
+    a grid with `nodes` (nx, ny) nodes (ghosts included); cell [m]. Computed per axis with
+    the grid's sizes as Python scalars (see `GridLayout.local_along`)."""
+    base, along, slope = [], [], []
+    for axis in range(2):
+        first = jnp.clip(jnp.floor(local[axis] - shape.reach).astype(jnp.int32), 0, nodes[axis] - shape.support)
+        values, slopes = shape.along(local[axis] - first.astype(local[axis].dtype))     # (N, s) each
+        base.append(first)
+        along.append(values)
+        slope.append(slopes / cell)
+    weights = along[0][:, :, None] * along[1][:, None, :]
+    gradients = jnp.stack([slope[0][:, :, None] * along[1][:, None, :], along[0][:, :, None] * slope[1][:, None, :]])
+    base = jnp.stack(base, axis=1)
     return Stencil(checkpoint_name(base, "stencil"), checkpoint_name(weights, "stencil"), checkpoint_name(gradients, "stencil"))

@@ -75,6 +75,23 @@ def test_gradients_are_the_derivatives_of_the_weights(shape):
         np.testing.assert_allclose(jnp.moveaxis(stencil.gradients[:, 0], 0, -1), jacobian, atol=1e-12)
 
 
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_the_stencil_arithmetic_captures_no_array_constant(shape):
+    # An array the step closes over becomes an operand of the loops around it, which XLA:CPU
+    # does not fold back into a constant inside nested loops: with the grid's origin and sizes
+    # captured as arrays, the segmented rollout's stencil kernels ran 2x slower
+    # (docs/benchmarks.md, 2026-12-03). Every grid constant here must be a Python scalar.
+    layout = GridLayout((0.2, -0.1), 0.1, (10, 8), shape, 2)
+    points = random_points(50, (1.0, 0.8)) + jnp.asarray([0.2, -0.1])
+
+    def stencil_work(x):
+        stencil = layout.stencil(x)
+        return stencil, layout.node_offsets(stencil.base, x, stencil.weights.shape[1]), layout.outside(x)
+
+    closed = jax.make_jaxpr(stencil_work)(points)
+    assert [np.shape(const) for const in closed.consts] == []
+
 def tent(r):
     return np.maximum(1.0 - np.abs(r), 0.0)
 
