@@ -1,0 +1,164 @@
+"""Compile time of every example scene: its probe rollout forward, and its gradient.
+
+    python benchmarks/compile_times.py            # prints a table, updates docs/benchmarks.md
+    python benchmarks/compile_times.py --no-write
+    python benchmarks/compile_times.py --only calibrate_wall_scene.toml
+
+What a user waits for before the first step of a calibration runs: for each example scene,
+the program `Simulation.probes` builds (the whole rollout, checkpointed as jaxmpm chooses for
+the scene), and the gradient of a misfit of its probe histories with respect to every
+material parameter, compiled as jaxmpm compiles its reverse-mode work
+(`jit_reverse_mode`). Scenes without probes get a probe of the mean displacement of their
+first body. Trace (Python tracing and lowering to XLA) and XLA compilation are timed apart.
+Each scene runs in a fresh process (nothing cached in memory; JAX's persistent compilation
+cache off), float64 as the scenes' own dtype asks (JAX's 64-bit mode on).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "benchmarks.md"
+BEGIN, END = "<!-- compile_times:begin -->", "<!-- compile_times:end -->"
+CALIBRATION_FILES = ".calibration.toml"
+
+
+def example_scenes() -> list[Path]:
+    return sorted(path for path in (ROOT / "examples").glob("*.toml") if not path.name.endswith(CALIBRATION_FILES))
+
+
+def timed(stage):
+    start = time.perf_counter()
+    value = stage()
+    return value, time.perf_counter() - start
+
+
+def measure(path: Path) -> dict:
+    """Trace and compile seconds of the forward probe program and of its gradient."""
+    import dataclasses
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    import jaxmpm
+    from jaxmpm.xla_options import jit_reverse_mode
+
+    scene = jaxmpm.load_scene(path)
+    if not scene.probes:
+        scene = dataclasses.replace(scene, probes=(jaxmpm.Probe("moved", "body_displacement", body=scene.bodies[0].name),))
+    sim = jaxmpm.Simulation(scene)
+    params = sim.cast(sim.params)
+
+    def misfit(materials):
+        probes = sim.probes({**params, "materials": materials})
+        return sum(jnp.sum(history * history) for history in probes.values())
+
+    materials = params["materials"]
+    chosen = sim.checkpointing.resolved(sim.steps, sim.point_count, sim.structure.layout.shape.support,
+                                        jnp.dtype(sim.dtype).itemsize)
+    result = {"scene": path.name, "points": sim.point_count, "steps": sim.steps, "dtype": str(sim.dtype),
+              "segment": chosen.segment_length(sim.steps), "kept": chosen.step}
+    for name, program in (("forward", jax.jit(misfit)), ("gradient", jit_reverse_mode(jax.grad(misfit)))):
+        lowered, trace_s = timed(lambda: program.trace(materials).lower())
+        _, compile_s = timed(lowered.compile)
+        result[f"{name}_trace_s"], result[f"{name}_compile_s"] = trace_s, compile_s
+    return result
+
+
+def table(results: list[dict]) -> str:
+    lines = [
+        "| example | points | steps | segment | forward: trace + compile | gradient: trace + compile |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for r in results:
+        forward = r["forward_trace_s"] + r["forward_compile_s"]
+        gradient = r["gradient_trace_s"] + r["gradient_compile_s"]
+        lines.append(
+            f"| {r['scene']} | {r['points']:,} | {r['steps']:,} | {'whole' if r['segment'] == r['steps'] else r['segment']} | "
+            f"{r['forward_trace_s']:.1f} + {r['forward_compile_s']:.1f} = {forward:.1f} s | "
+            f"{r['gradient_trace_s']:.1f} + {r['gradient_compile_s']:.1f} = {gradient:.1f} s |"
+        )
+    return "\n".join(lines)
+
+
+def commit() -> str:
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True, text=True)
+        return head.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def section(results: list[dict]) -> str:
+    import jax
+
+    load = os.getloadavg()[0]
+    return "\n".join([
+        "## Compile time of the example scenes",
+        "",
+        f"Machine: {platform.machine()}, {os.cpu_count()} cores; Python {platform.python_version()}, JAX {jax.__version__}; "
+        f"jaxmpm {commit()}; {datetime.date.today().isoformat()}; 1-minute load average {load:.1f} after the run. "
+        "`python benchmarks/compile_times.py`, one fresh process per scene, persistent compilation cache off.",
+        "",
+        table(results),
+        "",
+        "The forward program is the scene's whole probe rollout (`Simulation.probes`); the gradient is that of the "
+        "sum of squares of its probe histories with respect to every material parameter, as a calibration compiles "
+        "it. Segment: the checkpoint segment jaxmpm chose (whole: one segment, the rollout's kept values fit the "
+        "memory budget). Trace is Python tracing and lowering, compile is XLA. A calibration or a `jaxmpm run` "
+        "with the persistent cache on (the CLI default) pays this once per scene structure.",
+    ])
+
+
+def write_doc(text: str):
+    doc = DOC.read_text()
+    block = f"{BEGIN}\n{text}\n{END}"
+    if BEGIN in doc:
+        doc = re.sub(re.escape(BEGIN) + ".*?" + re.escape(END), lambda _: block, doc, flags=re.S)
+    else:
+        doc = doc.replace("<!-- presets:begin -->", block + "\n\n<!-- presets:begin -->")
+    temporary = DOC.with_suffix(".md.tmp")
+    temporary.write_text(doc)
+    temporary.replace(DOC)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--no-write", action="store_true", help="print the table only")
+    parser.add_argument("--only", nargs="*", help="example file names to measure (default: all)")
+    parser.add_argument("--scene", help=argparse.SUPPRESS)   # the worker's own run
+    args = parser.parse_args()
+    if args.scene:
+        print(json.dumps(measure(Path(args.scene))))
+        return
+    results = []
+    for path in example_scenes():
+        if args.only and path.name not in args.only:
+            continue
+        print(f"scene {path.name} ...", file=sys.stderr, flush=True)
+        done = subprocess.run([sys.executable, __file__, "--scene", str(path)], capture_output=True, text=True)
+        if done.returncode:
+            print(done.stderr[-2000:], file=sys.stderr)
+            continue
+        results.append(json.loads(done.stdout.strip().splitlines()[-1]))
+        print(json.dumps(results[-1]), file=sys.stderr)
+    print(table(results))
+    if not args.no_write and not args.only:
+        write_doc(section(results))
+
+
+if __name__ == "__main__":
+    main()
