@@ -24,9 +24,19 @@ def entries(tensor):
     return [part.reshape(tensor.shape[:-2]) for part in jnp.split(flat, 9, axis=-1)]
 
 
+def stack_last(values):
+    """jnp.stack(values, axis=-1), built as a stack along a leading axis moved to the end.
+
+    The same array, but XLA:CPU then keeps each entry contiguous (entry-major) instead of
+    interleaving the entries point by point, and the kernels that read the entries back one
+    by one read them in place: the step ran 20-35 % faster with the velocity gradient built
+    this way (docs/benchmarks.md, 2026-12-03)."""
+    return jnp.moveaxis(jnp.stack(values), 0, -1)
+
+
 def from_entries(values):
     """(..., 3, 3) tensors from 9 row-major entries (...,) (one stack; its reverse mode is one split)."""
-    return jnp.stack(values, axis=-1).reshape(values[0].shape + (3, 3))
+    return stack_last(values).reshape(values[0].shape + (3, 3))
 
 
 DIAGONAL = (0, 4, 8)
