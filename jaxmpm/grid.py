@@ -16,6 +16,7 @@ import numpy as np
 
 from jaxmpm.adjoints import paired_linear
 from jaxmpm.shapes import make_shape, stencil
+from jaxmpm.tensors import stack_last
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,7 +73,7 @@ class GridLayout:
         along = []
         for axis, part in enumerate(jnp.split(positions, 2, axis=1)):
             corner = self.origin[axis] + (base[:, axis] - self.ghost).astype(positions.dtype) * self.cell - part[:, 0]
-            along.append(jnp.stack([corner + node * self.cell for node in range(support)], axis=1))
+            along.append(stack_last([corner + node * self.cell for node in range(support)]))
         shape = (len(positions), support, support)
         return jnp.stack([jnp.broadcast_to(along[0][:, :, None], shape), jnp.broadcast_to(along[1][:, None, :], shape)])
 

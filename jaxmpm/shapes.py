@@ -22,6 +22,8 @@ from typing import ClassVar, NamedTuple
 import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
+from jaxmpm.tensors import stack_last
+
 
 class Stencil(NamedTuple):
     """The nodes a set of points talks to. base: (N, 2) int32; weights: (N, s, s);
@@ -44,7 +46,7 @@ class Linear:
     def along(self, offset):
         """1-D values and slopes d/dr (per cell) at the stencil nodes, (N, s) each; `offset`
         (N,) is the position minus the base node along one axis, in cells."""
-        return jnp.stack([1.0 - offset, offset], axis=1), jnp.stack([-jnp.ones_like(offset), jnp.ones_like(offset)], axis=1)
+        return stack_last([1.0 - offset, offset]), stack_last([-jnp.ones_like(offset), jnp.ones_like(offset)])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,8 +60,8 @@ class QuadraticBSpline:
     def along(self, offset):
         # offset in [1/2, 3/2): the nodes sit at r = offset, offset - 1, offset - 2
         first, middle, last = 1.5 - offset, offset - 1.0, offset - 0.5
-        values = jnp.stack([0.5 * first * first, 0.75 - middle * middle, 0.5 * last * last], axis=1)
-        slopes = jnp.stack([-first, -2.0 * middle, last], axis=1)
+        values = stack_last([0.5 * first * first, 0.75 - middle * middle, 0.5 * last * last])
+        slopes = stack_last([-first, -2.0 * middle, last])
         return values, slopes
 
 
@@ -76,7 +78,7 @@ class UniformGIMP:
 
     def along(self, offset):
         width = self.half_width
-        distance = jnp.stack([offset, offset - 1.0, offset - 2.0], axis=1)
+        distance = stack_last([offset, offset - 1.0, offset - 2.0])
         size, sign = jnp.abs(distance), jnp.sign(distance)
         inner = size < width
         outer = size >= 1.0 - width

@@ -52,7 +52,7 @@ from jaxmpm.grid import (
 )
 from jaxmpm.materials.base import points_update
 from jaxmpm.state import Diagnostics, record_errors
-from jaxmpm.tensors import from_entries
+from jaxmpm.tensors import from_entries, stack_last
 
 MASS_FLOOR = 1e-10   # nodes lighter than this fraction of the heaviest point count as empty
 
@@ -127,7 +127,7 @@ class Structure:
 def point_momentum(particles, stencil):
     """Momentum m_p N_I v_p each point gives its stencil nodes, (N, s, s, 2)."""
     weighted = particles.mass[:, None, None] * stencil.weights
-    return jnp.stack([weighted * particles.v[:, None, None, axis] for axis in range(2)], axis=-1)
+    return stack_last([weighted * particles.v[:, None, None, axis] for axis in range(2)])
 
 
 def per_point(values):
@@ -172,7 +172,7 @@ def particles_to_grid(particles, stencil, offsets, field, structure):
     if structure.has_contact:
         channels += [per_point(mass) * stencil.gradients[0], per_point(mass) * stencil.gradients[1]]
     layout = structure.layout
-    nodes = scatter_to_nodes(layout, stencil.base, jnp.stack(channels, axis=-1), field, structure.fields)
+    nodes = scatter_to_nodes(layout, stencil.base, stack_last(channels), field, structure.fields)
     mass_gradient = None
     if structure.has_contact:   # the mirror image of a mass gradient flips only its normal component (as at a slip edge)
         mirror = dataclasses.replace(structure.boundaries, **{
