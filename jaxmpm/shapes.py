@@ -113,5 +113,5 @@ def stencil(shape, local, nodes, cell):
         slope.append(slopes / cell)
     weights = along[0][:, :, None] * along[1][:, None, :]
     gradients = jnp.stack([slope[0][:, :, None] * along[1][:, None, :], along[0][:, :, None] * slope[1][:, None, :]])
-    base = jnp.stack(base, axis=1)
+    base = stack_last(base)
     return Stencil(checkpoint_name(base, "stencil"), checkpoint_name(weights, "stencil"), checkpoint_name(gradients, "stencil"))
