@@ -92,6 +92,33 @@ def test_the_stencil_arithmetic_captures_no_array_constant(shape):
     closed = jax.make_jaxpr(stencil_work)(points)
     assert [np.shape(const) for const in closed.consts] == []
 
+
+def test_stack_last_is_the_stack_along_a_new_last_axis_in_value_and_derivatives():
+    # stack_last builds jnp.stack(values, axis=-1) another way (a leading-axis stack moved to
+    # the end, which XLA:CPU lays out entry-major: docs/benchmarks.md, 2026-12-03); the stencil,
+    # the transfers and the velocity gradient rely on it being exactly that array.
+    from jaxmpm.tensors import from_entries, stack_last
+
+    keys = jax.random.split(jax.random.PRNGKey(3), 3)
+    values = [jax.random.normal(key, (7, 3, 3)) for key in keys]
+    tangents = [2.0 * value + 1.0 for value in values]
+    weights = jax.random.normal(jax.random.PRNGKey(4), (7, 3, 3, 3))
+
+    def plain(*parts):
+        return jnp.stack(parts, axis=-1)
+
+    assert stack_last(values).shape == (7, 3, 3, 3)
+    np.testing.assert_array_equal(stack_last(values), plain(*values))
+    np.testing.assert_array_equal(jax.jvp(lambda *v: stack_last(list(v)), values, tangents)[1],
+                                  jax.jvp(plain, values, tangents)[1])
+    ours = jax.grad(lambda *v: jnp.sum(weights * stack_last(list(v))), argnums=(0, 1, 2))(*values)
+    theirs = jax.grad(lambda *v: jnp.sum(weights * plain(*v)), argnums=(0, 1, 2))(*values)
+    for a, b in zip(ours, theirs):
+        np.testing.assert_array_equal(a, b)
+    entries = [value[:, 0, 0] for value in values] * 3
+    np.testing.assert_array_equal(from_entries(entries), jnp.stack(entries, axis=-1).reshape(7, 3, 3))
+
+
 def tent(r):
     return np.maximum(1.0 - np.abs(r), 0.0)
 
