@@ -17,18 +17,17 @@ cache off), float64 as the scenes' own dtype asks (JAX's 64-bit mode on).
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
-import platform
-import re
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).parent))
+
+from throughput import machine_info, write_section  # noqa: E402  (same directory)
+
 ROOT = Path(__file__).resolve().parents[1]
-DOC = ROOT / "docs" / "benchmarks.md"
 BEGIN, END = "<!-- compile_times:begin -->", "<!-- compile_times:end -->"
 CALIBRATION_FILES = ".calibration.toml"
 
@@ -93,25 +92,15 @@ def table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def commit() -> str:
-    try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True, text=True)
-        return head.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def section(results: list[dict]) -> str:
-    import jax
-
-    load = os.getloadavg()[0]
+    machine = machine_info()
     return "\n".join([
         "## Compile time of the example scenes",
         "",
-        f"Machine: {platform.machine()}, {os.cpu_count()} cores; Python {platform.python_version()}, JAX {jax.__version__}; "
-        f"jaxmpm {commit()}; {datetime.date.today().isoformat()}; 1-minute load average {load:.1f} after the run. "
-        "`python benchmarks/compile_times.py`, one fresh process per scene, persistent compilation cache off.",
+        f"Machine: {machine['cpu']}, {machine['cores']} cores, {machine['memory']}; Python {machine['python']}, "
+        f"JAX {machine['jax']}; jaxmpm {machine['commit']}; {machine['date']}; 1-minute load average "
+        f"{machine['load']:.1f} after the run. `python benchmarks/compile_times.py`, one fresh process per scene, "
+        "persistent compilation cache off.",
         "",
         table(results),
         "",
@@ -121,18 +110,6 @@ def section(results: list[dict]) -> str:
         "memory budget). Trace is Python tracing and lowering, compile is XLA. A calibration or a `jaxmpm run` "
         "with the persistent cache on (the CLI default) pays this once per scene structure.",
     ])
-
-
-def write_doc(text: str):
-    doc = DOC.read_text()
-    block = f"{BEGIN}\n{text}\n{END}"
-    if BEGIN in doc:
-        doc = re.sub(re.escape(BEGIN) + ".*?" + re.escape(END), lambda _: block, doc, flags=re.S)
-    else:
-        doc = doc.replace("<!-- presets:begin -->", block + "\n\n<!-- presets:begin -->")
-    temporary = DOC.with_suffix(".md.tmp")
-    temporary.write_text(doc)
-    temporary.replace(DOC)
 
 
 def main():
@@ -157,7 +134,7 @@ def main():
         print(json.dumps(results[-1]), file=sys.stderr)
     print(table(results))
     if not args.no_write and not args.only:
-        write_doc(section(results))
+        write_section(BEGIN, END, section(results))
 
 
 if __name__ == "__main__":
