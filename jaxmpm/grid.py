@@ -16,7 +16,7 @@ import numpy as np
 
 from jaxmpm.adjoints import paired_linear
 from jaxmpm.shapes import make_shape, stencil
-from jaxmpm.tensors import stack_last
+from jaxmpm.tensors import materialized, stack_last
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,15 +131,18 @@ def scatter_to_nodes(layout, base, values, field=None, fields=1):
     def add(indices, values):
         return add_to_nodes(layout, indices[0], values, indices[1], fields)
 
-    def read(indices, nodes):
-        return read_at_stencils(layout, indices[0], nodes, support, indices[1])
+    def read(indices, nodes):   # the node cotangents are read at every stencil entry: computed once
+        return read_at_stencils(layout, indices[0], materialized(nodes), support, indices[1])
 
     return paired_linear(add, read)((base, field), values)
 
 
 def gather_from_nodes(layout, base, nodes, support, field=None):
-    """`read_at_stencils`, whose reverse mode is `add_to_nodes` (its exact transpose)."""
+    """`read_at_stencils`, whose reverse mode is `add_to_nodes` (its exact transpose). The
+    node values are computed once before the gather (`materialized`): fused into it, their
+    arithmetic (a division per node for velocities) ran again at every stencil entry."""
     fields = nodes.shape[0]
+    nodes = materialized(nodes)
 
     def read(indices, nodes):
         return read_at_stencils(layout, indices[0], nodes, support, indices[1])

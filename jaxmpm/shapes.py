@@ -22,7 +22,7 @@ from typing import ClassVar, NamedTuple
 import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
-from jaxmpm.tensors import stack_last
+from jaxmpm.tensors import materialized, stack_last
 
 
 class Stencil(NamedTuple):
@@ -42,6 +42,9 @@ class Linear:
     support: ClassVar[int] = 2
     ghost: ClassVar[int] = 0
     reach: ClassVar[float] = 0.0     # base node = floor(position - reach)
+    # compute the 1-D factors once (`materialized`) rather than in every kernel that reads
+    # the weights: 40 % faster forward with gimp, 3-5 % with bspline2, 4 % slower with linear
+    factors_once: ClassVar[bool] = False
 
     def along(self, offset):
         """1-D values and slopes d/dr (per cell) at the stencil nodes, (N, s) each; `offset`
@@ -56,6 +59,7 @@ class QuadraticBSpline:
     support: ClassVar[int] = 3
     ghost: ClassVar[int] = 1
     reach: ClassVar[float] = 0.5
+    factors_once: ClassVar[bool] = True
 
     def along(self, offset):
         # offset in [1/2, 3/2): the nodes sit at r = offset, offset - 1, offset - 2
@@ -75,6 +79,7 @@ class UniformGIMP:
     support: ClassVar[int] = 3
     ghost: ClassVar[int] = 1
     reach: ClassVar[float] = 0.5
+    factors_once: ClassVar[bool] = True
 
     def along(self, offset):
         width = self.half_width
@@ -111,6 +116,8 @@ def stencil(shape, local, nodes, cell):
         base.append(first)
         along.append(values)
         slope.append(slopes / cell)
+    if shape.factors_once:
+        along, slope = materialized((along, slope))
     weights = along[0][:, :, None] * along[1][:, None, :]
     gradients = jnp.stack([slope[0][:, :, None] * along[1][:, None, :], along[0][:, :, None] * slope[1][:, None, :]])
     base = stack_last(base)

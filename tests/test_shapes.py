@@ -119,6 +119,38 @@ def test_stack_last_is_the_stack_along_a_new_last_axis_in_value_and_derivatives(
     np.testing.assert_array_equal(from_entries(entries), jnp.stack(entries, axis=-1).reshape(7, 3, 3))
 
 
+@pytest.mark.parametrize("entry", [1.5, np.nan, np.inf])
+def test_materialized_is_the_identity_in_value_and_derivatives(entry):
+    # materialized passes values through a conditional (so that XLA computes them once,
+    # docs/benchmarks.md, 2026-12-03); the gathers and the stencil rely on it being exactly
+    # the identity, whatever the entry its predicate reads (NaN and inf included), under
+    # jit, jvp, grad and vmap (where the conditional becomes a select).
+    from jaxmpm.tensors import materialized
+
+    values = jax.random.normal(jax.random.PRNGKey(5), (4, 3, 2)).at[0, 0, 0].set(entry)
+    other = jax.random.normal(jax.random.PRNGKey(6), (4,))
+    weights = jax.random.normal(jax.random.PRNGKey(7), (4, 3, 2))
+
+    def through(values, other):
+        kept, also = materialized((values, other))
+        return jnp.sum(weights * jnp.sin(kept)) + jnp.sum(also * also)
+
+    def plain(values, other):
+        return jnp.sum(weights * jnp.sin(values)) + jnp.sum(other * other)
+
+    np.testing.assert_array_equal(jax.jit(materialized)((values, other))[0], values)
+    np.testing.assert_array_equal(jax.jit(materialized)(values), values)
+    tangents = (jnp.ones_like(values), 2.0 * other)
+    np.testing.assert_array_equal(jax.jvp(through, (values, other), tangents)[1], jax.jvp(plain, (values, other), tangents)[1])
+    finite = values.at[0, 0, 0].set(0.5)   # derivatives at a finite point (sin(NaN) has none to compare)
+    for ours, theirs in zip(jax.jit(jax.grad(through, argnums=(0, 1)))(finite, other), jax.grad(plain, argnums=(0, 1))(finite, other)):
+        np.testing.assert_array_equal(ours, theirs)
+    batch = jnp.stack([values, 2.0 * values])
+    np.testing.assert_array_equal(jax.vmap(materialized)(batch), batch)
+    np.testing.assert_array_equal(jax.vmap(jax.grad(through), in_axes=(0, None))(jnp.stack([finite, -finite]), other),
+                                  jax.vmap(jax.grad(plain), in_axes=(0, None))(jnp.stack([finite, -finite]), other))
+
+
 def tent(r):
     return np.maximum(1.0 - np.abs(r), 0.0)
 
