@@ -22,7 +22,7 @@ from typing import ClassVar, NamedTuple
 import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
-from jaxmpm.tensors import materialized, stack_last
+from jaxmpm.tensors import cotangents_once, materialized, stack_last
 
 
 class Stencil(NamedTuple):
@@ -121,4 +121,5 @@ def stencil(shape, local, nodes, cell):
     weights = along[0][:, :, None] * along[1][:, None, :]
     gradients = jnp.stack([slope[0][:, :, None] * along[1][:, None, :], along[0][:, :, None] * slope[1][:, None, :]])
     base = stack_last(base)
+    weights, gradients = cotangents_once((weights, gradients))
     return Stencil(checkpoint_name(base, "stencil"), checkpoint_name(weights, "stencil"), checkpoint_name(gradients, "stencil"))
