@@ -69,13 +69,14 @@ class GridLayout:
         return stencil(self.shape, (local_x + self.ghost, local_y + self.ghost), self.nodes, self.cell)
 
     def node_offsets(self, base, positions, support):
-        """x_I - x_p along x and along y for each point's s x s stencil nodes: (2, N, s, s) [m]."""
+        """x_I - x_p along x and along y for each point's s x s stencil nodes: two (N, s, s)
+        arrays [m] (not one stacked array, see `shapes.Stencil`)."""
         along = []
         for axis, part in enumerate(jnp.split(positions, 2, axis=1)):
             corner = self.origin[axis] + (base[:, axis] - self.ghost).astype(positions.dtype) * self.cell - part[:, 0]
             along.append(stack_last([corner + node * self.cell for node in range(support)]))
         shape = (len(positions), support, support)
-        return jnp.stack([jnp.broadcast_to(along[0][:, :, None], shape), jnp.broadcast_to(along[1][:, None, :], shape)])
+        return jnp.broadcast_to(along[0][:, :, None], shape), jnp.broadcast_to(along[1][:, None, :], shape)
 
     def outside(self, positions):
         """(N,) bool: the point has left the grid."""

@@ -1,7 +1,7 @@
 """Shape functions on the regular grid: weights and gradients of the nodes around each point.
 
 A shape function gives, for N points, a stencil of s x s nodes: the lower-left node index
-`base` (N, 2), the weights N_I (N, s, s) and their gradients dN_I/dx_j (2, N, s, s) [1/m], x then y.
+`base` (N, 2), the weights N_I (N, s, s) and their gradients dN_I/dx_j [1/m], a (N, s, s) array along x and one along y.
 Every kind here is a tensor product of a 1-D function, so a kind only says what its 1-D
 function is on the s nodes around a point (`along`). Kinds that reach beyond the node next
 to a point need one ghost layer of nodes outside the grid (`ghost`), so points up to the grid
@@ -27,12 +27,13 @@ from jaxmpm.tensors import cotangents_once, materialized, stack_last
 
 class Stencil(NamedTuple):
     """The nodes a set of points talks to. base: (N, 2) int32; weights: (N, s, s);
-    gradients: (2, N, s, s) [1/m], the x and the y derivative (axis first: a stack along a
-    leading axis is a plain copy, along the last one an interleave XLA:CPU runs slowly)."""
+    gradients: (d/dx, d/dy), two (N, s, s) arrays [1/m]. Two arrays, not one stacked array:
+    reverse mode turns each read of a part of an array into a pad of the whole array, and
+    the step's gradients ran 4-8 % faster without those pads (docs/benchmarks.md, 2026-12-03)."""
 
     base: jnp.ndarray
     weights: jnp.ndarray
-    gradients: jnp.ndarray
+    gradients: tuple[jnp.ndarray, jnp.ndarray]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,7 +120,7 @@ def stencil(shape, local, nodes, cell):
     if shape.factors_once:
         along, slope = materialized((along, slope))
     weights = along[0][:, :, None] * along[1][:, None, :]
-    gradients = jnp.stack([slope[0][:, :, None] * along[1][:, None, :], along[0][:, :, None] * slope[1][:, None, :]])
+    gradients = (slope[0][:, :, None] * along[1][:, None, :], along[0][:, :, None] * slope[1][:, None, :])
     base = stack_last(base)
     weights, gradients = cotangents_once((weights, gradients))
     return Stencil(checkpoint_name(base, "stencil"), checkpoint_name(weights, "stencil"), checkpoint_name(gradients, "stencil"))

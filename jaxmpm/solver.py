@@ -52,7 +52,7 @@ from jaxmpm.grid import (
 )
 from jaxmpm.materials.base import points_update
 from jaxmpm.state import Diagnostics, record_errors
-from jaxmpm.tensors import from_entries, stack_last
+from jaxmpm.tensors import components, entries, from_entries, stack_last
 
 MASS_FLOOR = 1e-10   # nodes lighter than this fraction of the heaviest point count as empty
 
@@ -127,7 +127,7 @@ class Structure:
 def point_momentum(particles, stencil):
     """Momentum m_p N_I v_p each point gives its stencil nodes, (N, s, s, 2)."""
     weighted = particles.mass[:, None, None] * stencil.weights
-    return stack_last([weighted * particles.v[:, None, None, axis] for axis in range(2)])
+    return stack_last([weighted * per_point(velocity) for velocity in components(particles.v)])
 
 
 def per_point(values):
@@ -148,26 +148,30 @@ class Nodes(NamedTuple):
 def particles_to_grid(particles, stencil, offsets, field, structure):
     """Node mass m_I, momentum p_I, force f_I = sum_p (m_p N_I g - V_p sigma_p . grad N_I) and,
     with contact pairs, the mass gradient sum_p m_p grad N_I, each point into its own field.
-    With APIC (`offsets` (2, N, s, s) = x_I - x_p) the momentum is m_p N_I (v_p + C_p (x_I - x_p)).
+    With APIC (`offsets`: x_I - x_p and y_I - y_p, (N, s, s) each) the momentum is
+    m_p N_I (v_p + C_p (x_I - x_p)).
 
     Built as one (N, s, s, 5 or 7) array [m, p_x, p_y, f_x, f_y (, dm/dx, dm/dy)] for the
-    single scatter, each channel written out (no products with zero channels)."""
-    mass, velocity = particles.mass, particles.v
+    single scatter, each channel written out (no products with zero channels). The point
+    values are read as whole columns (`components`, `entries`), never indexed one by one."""
+    mass, volume = particles.mass, particles.volume
     weighted = per_point(mass) * stencil.weights
     gravity = structure.gravity
-    stress = -particles.volume[:, None, None] * particles.stress[:, :2, :2]     # -V_p sigma_p
+    sigma = entries(particles.stress)
+    velocity = components(particles.v)
+    affine = components(particles.affine.reshape(-1, 4)) if offsets is not None else None   # C_xx, C_xy, C_yx, C_yy
     external = [mass * gravity[0], mass * gravity[1]]
     if structure.axisymmetric:   # the hoop stress pulls the ring inwards: -V_p sigma_tt N_I / r_p
-        external[0] = external[0] - particles.volume * particles.stress[:, 2, 2] / point_radius(particles.x, structure)
+        external[0] = external[0] - volume * sigma[8] / point_radius(particles.x, structure)
     momentum, force = [], []
     for axis in range(2):
-        moving = per_point(velocity[:, axis])
+        moving = per_point(velocity[axis])
         if offsets is not None:
-            affine = particles.affine
-            moving = moving + per_point(affine[:, axis, 0]) * offsets[0] + per_point(affine[:, axis, 1]) * offsets[1]
+            moving = moving + per_point(affine[2 * axis]) * offsets[0] + per_point(affine[2 * axis + 1]) * offsets[1]
         momentum.append(weighted * moving)
-        force.append(stencil.weights * per_point(external[axis]) + stencil.gradients[0] * per_point(stress[:, axis, 0])
-                     + stencil.gradients[1] * per_point(stress[:, axis, 1]))
+        # -V_p sigma_p . grad N_I
+        force.append(stencil.weights * per_point(external[axis]) - stencil.gradients[0] * per_point(volume * sigma[3 * axis])
+                     - stencil.gradients[1] * per_point(volume * sigma[3 * axis + 1]))
     channels = [weighted, *momentum, *force]
     if structure.has_contact:
         channels += [per_point(mass) * stencil.gradients[0], per_point(mass) * stencil.gradients[1]]
@@ -461,9 +465,10 @@ def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
     stresses, histories, stretches = [], [], []
     # det(I + dt L), written out (cheaper than an LU per point): the in-plane 2x2 block times
     # the hoop stretch 1 + dt L_tt (which is 1 in plane strain, where L_tt = 0)
-    stretch = (1.0 + dt * gradient[:, 0, 0]) * (1.0 + dt * gradient[:, 1, 1]) - dt * dt * gradient[:, 0, 1] * gradient[:, 1, 0]
+    rate = entries(gradient)
+    stretch = (1.0 + dt * rate[0]) * (1.0 + dt * rate[4]) - dt * dt * rate[1] * rate[3]
     if axisymmetric:
-        stretch = stretch * (1.0 + dt * gradient[:, 2, 2])
+        stretch = stretch * (1.0 + dt * rate[8])
     for block, history in zip(bodies, particles.history):
         points = block.points
         if block.kinematics != "free":
@@ -545,8 +550,9 @@ def make_step(structure: Structure):
                 particles, stencil, field, structure, nodes.mass, constrain, floor
             )
         gradient = velocity_gradient(stencil, velocity_new, field, structure, start)
-        if structure.transfer == "apic":
-            particles = particles.replace(affine=gradient[:, :2, :2])
+        if structure.transfer == "apic":   # C_p = the in-plane block of L_p, from its entries (no pads in reverse mode)
+            in_plane = entries(gradient)
+            particles = particles.replace(affine=stack_last([in_plane[0], in_plane[1], in_plane[3], in_plane[4]]).reshape(-1, 2, 2))
         particles = jax.named_call(update_stress, name="update_stress")(
             params["materials"], particles, gradient, structure.bodies, dt, structure.axisymmetric
         )

@@ -37,7 +37,7 @@ def stack_last(values):
     return jnp.moveaxis(jnp.stack(values), 0, -1)
 
 
-def materialized(values):
+def materialized(values, token=None):
     """`values` (an array or a pytree of arrays), computed once into memory before anything
     reads them.
 
@@ -51,8 +51,10 @@ def materialized(values):
     forward 25-30 % faster, gradient up to 20 %) and the 1-D shape-function factors of the
     3 x 3 stencils (gimp forward 40 % faster). The same values and derivatives (a conditional
     is differentiable and batchable; under `vmap` the predicate is batched and the cond
-    becomes a select, the same values without the gain)."""
-    entry = jax.tree_util.tree_leaves(values)[0].reshape(-1)[0]
+    becomes a select, the same values without the gain). `token`, a scalar, replaces the
+    entry the predicate is made of: inside a function vmapped over points, a token that is
+    not mapped (a material constant) keeps the conditional a conditional."""
+    entry = jax.tree_util.tree_leaves(values)[0].reshape(-1)[0] if token is None else token
     always = (entry == entry) | (entry != entry)
     return jax.lax.cond(always, lambda kept: kept, lambda kept: jax.tree_util.tree_map(
         lambda value: jnp.full_like(value, jnp.nan), kept), values)
@@ -67,6 +69,11 @@ def cotangents_once(values):
     once = paired_linear(lambda _, kept: kept, lambda _, cotangent: materialized(cotangent))
     # one map per array: a linear_call must not mix inputs with and without a derivative
     return jax.tree_util.tree_map(lambda value: once((), value), values)
+
+
+def components(values):
+    """values[..., k] for each k of the last axis, read with one split (see `entries`)."""
+    return [part[..., 0] for part in jnp.split(values, values.shape[-1], axis=-1)]
 
 
 def from_entries(values):
