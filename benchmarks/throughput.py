@@ -69,20 +69,30 @@ GRADIENT_STEPS = 200                   # steps of the rollout differentiated for
 # --------------------------------------------------------------------------- the scene
 
 
+def block_material(material: str):
+    """The block's material in the benchmark scene (see `block_scene`)."""
+    from jaxmpm import DruckerPrager, LinearElastic
+
+    if material == "elastic":
+        return LinearElastic(density=1000.0, young=1.0e6, poisson=0.3)
+    viscous = {"fluidity": 5.0, "exponent": 2.0} if material == "perzyna" else {}
+    return DruckerPrager(density=1000.0, young=1.0e6, poisson=0.3, friction_angle=30.0, **viscous)
+
+
 def block_scene(cells: int, dtype: str, steps: int, material: str = "elastic", shape: str = "linear",
                 transfer: str = "flip"):
     """The benchmark scene: `steps` steps in outputs of STEPS_PER_CALL steps. material:
-    "elastic", or "drucker_prager" (the same block as sand, phi = 30 deg, which slumps);
+    "elastic", "drucker_prager" (the same block as sand, phi = 30 deg, which slumps) or
+    "perzyna" (that sand viscoplastic, gamma = 5 1/s, N = 2);
     transfer: "flip" (FLIP 0.99) or "apic"."""
-    from jaxmpm import Body, Boundaries, DruckerPrager, Grid, LinearElastic, Numerics, Probe, Rectangle, Scene
+    from jaxmpm import Body, Boundaries, Grid, Numerics, Probe, Rectangle, Scene
 
     cell = 1.0 / cells
     dt = 0.4 * cell / 40.0            # c_p = 36.7 m/s for these moduli: CFL about 0.37
     return Scene(
         name=f"elastic_block_{cells}",
         grid=Grid(size=(1.0, 1.0), cell=cell, boundaries=Boundaries("slip", "slip", "fixed", "free")),
-        materials={"block": LinearElastic(density=1000.0, young=1.0e6, poisson=0.3) if material == "elastic"
-                   else DruckerPrager(density=1000.0, young=1.0e6, poisson=0.3, friction_angle=30.0)},
+        materials={"block": block_material(material)},
         bodies=(Body("block", "block", Rectangle((0.25, 0.0), (0.75, 0.5))),),
         duration=dt * steps,
         dt=dt,

@@ -512,6 +512,35 @@ def test_perzyna_newton_solve_matches_bisection_over_extremes(dtype):
     assert np.max(np.abs(solved - expected)) < (1e-12 if dtype == "float64" else 1e-5)
 
 
+def test_perzyna_residual_and_slope_written_out_match_the_log_sigmoid_form():
+    # The Newton steps use R(t) and dR/dt written with one exponential; they must be the
+    # residual of perzyna_fraction, log sigmoid(t) - N log sigmoid(-t) + N log(m p(x)) + c,
+    # and its derivative (JAX's jvp of that form), over t from -700 to 700 (the exponential's
+    # float64 range), pressure growth from 0 to 1e8 times p*, and m down to 0 (the TINY clamp).
+    from jaxmpm.materials.drucker_prager import TINY, perzyna_residual_and_slope
+    rng = np.random.default_rng(11)
+    n = 20_000
+    t = np.concatenate([rng.uniform(-700, 700, n // 2), rng.normal(0, 3, n // 2)])
+    t[:5] = [0.0, -0.0, 1e-300, -700.0, 700.0]
+    pressure = 10 ** rng.uniform(-3, 7, n)
+    growth = pressure * np.where(rng.uniform(size=n) < 0.3, 0.0, 10 ** rng.uniform(-8, 8, n))
+    m = np.where(rng.uniform(size=n) < 0.05, 0.0, rng.uniform(0.01, 2.0, n))
+    exponent, constant = 10 ** rng.uniform(-1, 1, n), rng.uniform(-50, 50, n)
+
+    def log_sigmoid_form(t, pressure, growth, m, exponent, constant):
+        p = pressure + growth * jax.nn.sigmoid(t)
+        return (jax.nn.log_sigmoid(t) - exponent * jax.nn.log_sigmoid(-t)
+                + exponent * jnp.log(jnp.maximum(m * p, TINY)) + constant)
+
+    arguments = (t, pressure, growth, m, exponent, constant)
+    value, slope = jax.jit(perzyna_residual_and_slope)(*arguments)
+    expected, expected_slope = jax.jit(lambda *a: jax.jvp(lambda t: log_sigmoid_form(t, *a[1:]), (a[0],), (jnp.ones_like(a[0]),)))(*arguments)
+    assert np.all(np.isfinite(value)) and np.all(np.isfinite(slope)) and np.all(slope > 0.0)
+    scale = 1.0 + np.abs(expected)
+    assert np.max(np.abs(value - expected) / scale) < 1e-13
+    np.testing.assert_allclose(slope, expected_slope, rtol=1e-12)
+
+
 @pytest.mark.parametrize("dtype", DTYPES, ids=DTYPE_IDS)
 def test_viscoplastic_limits(dtype):
     # Backward Euler on one step: q = q* - 3G dl with dl = gamma dt Phi(q), so after every step
