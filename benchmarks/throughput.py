@@ -6,7 +6,7 @@
     python benchmarks/throughput.py --reference  # jaxmpm against a Taichi kernel of its step (bench extra)
 
 The scene: a linear-elastic block (rho = 1000 kg/m^3, E = 1 MPa, nu = 0.3), or the same block as
-Drucker-Prager sand, resting on the fixed floor of a 1 m x 1 m box under gravity, 2 x 2 points
+Drucker-Prager sand (also viscoplastic, Perzyna gamma = 5 1/s, N = 2, at 16,384 points), resting on the fixed floor of a 1 m x 1 m box under gravity, 2 x 2 points
 per cell, MUSL, dt = 0.4 h / 40 m/s; linear, gimp and bspline2 shape functions with APIC, and
 linear with FLIP 0.99 (the `fast` preset's scheme). Sizes: 5,184, 16,384 and 65,536 points (the
 0.5 m block on 72^2, 128^2 and 256^2 cells). Every case times the forward step; GRADIENT_CASES
@@ -55,12 +55,13 @@ GRADIENT_CASES = {  # the cases whose gradient is timed too (each costs a gradie
     (16_384, "float64", "drucker_prager", "bspline2", "apic"),
     (16_384, "float32", "elastic", "bspline2", "apic"),
     (65_536, "float32", "drucker_prager", "bspline2", "apic"),
+    (16_384, "float32", "perzyna", "bspline2", "apic"),
 }
 CASES = [  # (points, dtype, material, shape function, transfer)
     (points, dtype, material, shape, transfer)
     for points in SIZES for material in ("elastic", "drucker_prager") for shape, transfer in SCHEMES
     for dtype in ("float32", "float64")
-]
+] + [(16_384, dtype, "perzyna", "bspline2", "apic") for dtype in ("float32", "float64")]   # the viscoplastic sand
 QUICK_CASES = [case for case in CASES if case[0] == 5_184 and case[1] == "float32"]
 STEPS_PER_CALL = 100                   # steps per `sim._advance` call (one output interval)
 GRADIENT_STEPS = 200                   # steps of the rollout differentiated for the ratio
@@ -276,7 +277,8 @@ def table(results: list[dict], machine: dict, load_before: float) -> str:
 METHOD = f"""\
 Method. Scene: a linear-elastic block (rho = 1000 kg/m^3, E = 1 MPa, nu = 0.3) resting on the
 fixed floor of a 1 m x 1 m box under gravity, or the same block as rate-independent
-Drucker-Prager sand (phi = 30 deg, the paper's cone), which slumps under its own weight;
+Drucker-Prager sand (phi = 30 deg, the paper's cone), which slumps under its own weight (at
+16,384 points with bspline2 + APIC also as Perzyna sand, gamma = 5 1/s, N = 2: "perzyna");
 2 x 2 points per cell, MUSL, dt = 0.4 h / (40 m/s); each shape function with APIC (the default
 transfer) and linear shapes with FLIP 0.99 (the `fast` preset's scheme); 5,184, 16,384 and
 65,536 points on 72^2, 128^2 and 256^2 grids (16,384 on 128^2 is the size of a comparison of
