@@ -120,7 +120,7 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
         r = residuals_of_z(z, data, bases)
         return 0.5 * jnp.sum(r * r) / count
 
-    batched = functools.partial(jax.vmap, in_axes=(0, 0, None, None))
+    batched = functools.partial(over_starts, in_axes=(0, 0, None, None))
     if optimizer_name == "lm":
         iterate = jax.jit(batched(levenberg_marquardt_iteration(residuals_of_z, count)))   # forward mode only
 
@@ -131,17 +131,34 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
             return iterate(z, unevaluated, data, bases)[1]
     else:
         first, step = optax_iteration(loss_of_z, optimizer_name, learning_rate)
-        start, iterate = jit_reverse_mode(jax.vmap(first, in_axes=(0, None, None))), jit_reverse_mode(batched(step))
+        start, iterate = jit_reverse_mode(over_starts(first, in_axes=(0, None, None))), jit_reverse_mode(batched(step))
     problem = CompiledProblem(
         residuals=residuals,
         linearization=jax.jit(lambda values, data, bases: levenberg_marquardt.residuals_and_jacobian(
             functools.partial(residuals, data=data, bases=bases), values)),
         start=start,
         iterate=iterate,
-        losses=None if optimizer_name == "lm" else jax.jit(jax.vmap(loss_of_z, in_axes=(0, None, None))),
+        losses=None if optimizer_name == "lm" else jax.jit(over_starts(loss_of_z, in_axes=(0, None, None))),
     )
     cache[key] = problem
     return problem
+
+
+def over_starts(function, in_axes):
+    """jax.vmap(function, in_axes) over the calibration's starts, but a single start (the
+    default) runs unbatched, its outputs given the batch axis after: under vmap, the
+    conditionals that make XLA compute shared values once (`jaxmpm.tensors.materialized`)
+    become selects, and one start's gradient ran 19 % slower (docs/benchmarks.md, 2026-12-04)."""
+    mapped = jax.vmap(function, in_axes=in_axes)
+
+    def call(*args):
+        sizes = {jax.tree_util.tree_leaves(arg)[0].shape[0] for arg, axis in zip(args, in_axes) if axis == 0}
+        if sizes != {1}:
+            return mapped(*args)
+        single = [jax.tree_util.tree_map(lambda leaf: leaf[0], arg) if axis == 0 else arg for arg, axis in zip(args, in_axes)]
+        return jax.tree_util.tree_map(lambda leaf: jnp.expand_dims(leaf, 0), function(*single))
+
+    return call
 
 
 def levenberg_marquardt_iteration(residuals_of_z, count):
