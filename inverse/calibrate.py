@@ -146,9 +146,9 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
 
 def over_starts(function, in_axes):
     """jax.vmap(function, in_axes) over the calibration's starts, but a single start (the
-    default) runs unbatched, its outputs given the batch axis after: under vmap, the
-    conditionals that make XLA compute shared values once (`jaxmpm.tensors.materialized`)
-    become selects, and one start's gradient ran 19 % slower (docs/benchmarks.md, 2026-12-04)."""
+    default) runs unbatched, its outputs given the batch axis after: a batch of one still
+    batches every gather, scatter and loop of the simulation, and the twin example's
+    Levenberg-Marquardt calibration ran 11 % slower that way (docs/benchmarks.md, 2026-12-04)."""
     mapped = jax.vmap(function, in_axes=in_axes)
 
     def call(*args):

@@ -7,8 +7,10 @@ finite at zero.
 
 import jax
 import jax.numpy as jnp
+from jax.custom_batching import custom_vmap
+from jax.custom_derivatives import SymbolicZero
 
-from jaxmpm.adjoints import paired_linear
+from jaxmpm.adjoints import linear_call, paired_linear
 
 
 def safe_sqrt(x):
@@ -37,27 +39,65 @@ def stack_last(values):
     return jnp.moveaxis(jnp.stack(values), 0, -1)
 
 
-def materialized(values, token=None):
+def through_conditional(values):
+    """`values` passed through a `lax.cond` whose predicate, c == c or c != c for an entry c
+    of them, is true for every c (NaN included) yet is not folded by XLA: the false branch
+    never runs."""
+    entry = jax.tree_util.tree_leaves(values)[0].reshape(-1)[0]
+    always = (entry == entry) | (entry != entry)
+    return jax.lax.cond(always, lambda kept: kept, lambda kept: jax.tree_util.tree_map(
+        lambda value: jnp.full_like(value, jnp.nan), kept), values)
+
+
+@custom_vmap
+def conditional_kept_under_vmap(values):
+    """`through_conditional`, whose vmap passes the whole batch through one conditional
+    (JAX's own batching of a cond with a batched predicate makes it a select)."""
+    return through_conditional(values)
+
+
+@conditional_kept_under_vmap.def_vmap
+def _batch_conditional(axis_size, in_batched, values):
+    return conditional_kept_under_vmap(values), in_batched[0]
+
+
+@jax.custom_jvp
+def materialized(values):
     """`values` (an array or a pytree of arrays), computed once into memory before anything
     reads them.
 
     XLA:CPU fuses a cheap producer into each of its consumers, so a value read by several
     kernels, or read at every stencil entry by a gather, is recomputed each time it is read.
     Nothing marks a value "compute once" (optimisation barriers are removed before fusion),
-    but a fusion cannot reach into a conditional: here the values pass through a
-    `lax.cond` whose predicate, c == c or c != c for an entry c, is true for every c (NaN
-    included) yet is not folded by XLA, so the false branch never runs. Used where it measured
-    faster (docs/benchmarks.md, 2026-12-03): the node arrays the gathers read (linear shapes:
-    forward 25-30 % faster, gradient up to 20 %) and the 1-D shape-function factors of the
-    3 x 3 stencils (gimp forward 40 % faster). The same values and derivatives (a conditional
-    is differentiable and batchable; under `vmap` the predicate is batched and the cond
-    becomes a select, the same values without the gain). `token`, a scalar, replaces the
-    entry the predicate is made of: inside a function vmapped over points, a token that is
-    not mapped (a material constant) keeps the conditional a conditional."""
-    entry = jax.tree_util.tree_leaves(values)[0].reshape(-1)[0] if token is None else token
-    always = (entry == entry) | (entry != entry)
-    return jax.lax.cond(always, lambda kept: kept, lambda kept: jax.tree_util.tree_map(
-        lambda value: jnp.full_like(value, jnp.nan), kept), values)
+    but a fusion cannot reach into a conditional: the values pass through one whose
+    predicate is always true (`through_conditional`). Used where it measured faster
+    (docs/benchmarks.md, 2026-12-03 and 12-04): the node arrays the gathers read (linear
+    shapes: forward 25-30 % faster, gradient up to 20 %), the 1-D shape-function factors of
+    the 3 x 3 stencils (gimp forward 40 % faster) and the Drucker-Prager adjoint's trial
+    cotangent. Exactly the identity in value and derivatives. Under `vmap` (the points of a
+    stress update, calibration starts, ensembles) the batch goes through one conditional
+    (`custom_vmap`): JAX's own rule would batch the predicate and make the cond a select,
+    the same values without the gain (one calibration start's gradient ran 19 % slower). The
+    tangent is materialized too, as a linear map that is its own transpose, since a
+    `custom_vmap` function has no reverse mode of its own."""
+    return conditional_kept_under_vmap(values)
+
+
+def _materialized_jvp(primals, tangents):
+    """The tangents materialized too, each array by its own linear map (a `linear_call` must
+    not mix inputs with and without a derivative); those without one stay zero."""
+    (values,), (tangents,) = primals, tangents
+    if linear_call is None:       # no paired linear maps in this JAX: JAX's own cond
+        tangents = jax.tree_util.tree_map(lambda t, v: jnp.zeros_like(v) if isinstance(t, SymbolicZero) else t,
+                                          tangents, values, is_leaf=lambda t: isinstance(t, SymbolicZero))
+        return conditional_kept_under_vmap(values), through_conditional(tangents)
+    once = paired_linear(lambda _, kept: conditional_kept_under_vmap(kept), lambda _, kept: conditional_kept_under_vmap(kept))
+    out = jax.tree_util.tree_map(lambda t, v: jnp.zeros_like(v) if isinstance(t, SymbolicZero) else once((), t),
+                                 tangents, values, is_leaf=lambda t: isinstance(t, SymbolicZero))
+    return conditional_kept_under_vmap(values), out
+
+
+materialized.defjvp(_materialized_jvp, symbolic_zeros=True)
 
 
 def cotangents_once(values):

@@ -360,9 +360,8 @@ class DruckerPragerLaw:
         trial_bar = [b + (mean_bar if index in tensors.DIAGONAL else 0.0) + jnp.where(elastic, o, zero)
                      for index, (b, o) in enumerate(zip(tensors.deviator_entries(deviator_bar), out_bar))]
         # computed once: each entry of the adjoint's outputs re-derived all nine (gradients 2-4 %
-        # faster); the token is a point-independent constant, so under the points' vmap this
-        # stays a conditional (docs/benchmarks.md, 2026-12-03)
-        trial_bar = tensors.materialized(trial_bar, token=shear)
+        # faster, docs/benchmarks.md, 2026-12-04)
+        trial_bar = tensors.materialized(trial_bar)
         moduli_bar, stress_bar, gradient_bar = elastic_trial_adjoint(constants, stress, velocity_gradient, dt, trial_bar)
         bars["bulk"] = moduli_bar["bulk"]
         bars["shear"] = bars["shear"] + moduli_bar["shear"]
