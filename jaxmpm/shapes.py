@@ -1,7 +1,8 @@
 """Shape functions on the regular grid: weights and gradients of the nodes around each point.
 
 A shape function gives, for N points, a stencil of s x s nodes: the lower-left node index
-`base` (N, 2), the weights N_I (N, s, s) and their gradients dN_I/dx_j [1/m], a (N, s, s) array along x and one along y.
+`base` (N, 2), the weights N_I (N, s, s) and their gradients dN_I/dx_j [1/m], one (N, s, s)
+array along x and one along y.
 Every kind here is a tensor product of a 1-D function, so a kind only says what its 1-D
 function is on the s nodes around a point (`along`). Kinds that reach beyond the node next
 to a point need one ghost layer of nodes outside the grid (`ghost`), so points up to the grid
@@ -29,7 +30,7 @@ class Stencil(NamedTuple):
     """The nodes a set of points talks to. base: (N, 2) int32; weights: (N, s, s);
     gradients: (d/dx, d/dy), two (N, s, s) arrays [1/m]. Two arrays, not one stacked array:
     reverse mode turns each read of a part of an array into a pad of the whole array, and
-    the step's gradients ran 4-8 % faster without those pads (docs/benchmarks.md, 2026-12-03)."""
+    the step's gradients ran 4-8 % faster without those pads (docs/benchmarks.md, 2026-12-04)."""
 
     base: jnp.ndarray
     weights: jnp.ndarray

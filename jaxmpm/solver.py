@@ -551,8 +551,9 @@ def make_step(structure: Structure):
             )
         gradient = velocity_gradient(stencil, velocity_new, field, structure, start)
         if structure.transfer == "apic":   # C_p = the in-plane block of L_p, from its entries (no pads in reverse mode)
-            in_plane = entries(gradient)
-            particles = particles.replace(affine=stack_last([in_plane[0], in_plane[1], in_plane[3], in_plane[4]]).reshape(-1, 2, 2))
+            rate = entries(gradient)
+            affine = stack_last([rate[0], rate[1], rate[3], rate[4]]).reshape(-1, 2, 2)
+            particles = particles.replace(affine=affine)
         particles = jax.named_call(update_stress, name="update_stress")(
             params["materials"], particles, gradient, structure.bodies, dt, structure.axisymmetric
         )

@@ -17,10 +17,11 @@ increment dl the trial state (p*, q*) moves to
 - Perzyna, backward Euler: dl = gamma dt Phi(p, q). Writing dl = x f*/H with x in [0, 1]
   turns it into one monotone scalar equation, solved in log form
       log x + log(f*/H) - log(gamma dt) - N [log(1 - x) + log(f* / (m p(x)))] = 0
-  for t = log(x / (1 - x)), where it is nearly linear (slope 1 as x -> 0, N as x -> 1), by a
-  few Newton steps (at most NEWTON_STEPS, fewer once converged) kept inside a bracket (stable for every gamma dt and N: x -> 1
-  is the plastic limit, x -> 0 the elastic one); its gradient comes from the implicit
-  function theorem, not from the iteration.
+  for t = log(x / (1 - x)), where it is nearly linear (slope 1 as x -> 0, N as x -> 1), by
+  Newton steps kept inside a bracket (at most NEWTON_STEPS, fewer once every point has
+  converged; stable for every gamma dt and N: x -> 1 is the plastic limit, x -> 0 the
+  elastic one); its gradient comes from the implicit function theorem, not from the
+  iteration.
 - apex: sand carries no tension. If the return along the flow direction cannot reach the cone
   (q* K m_psi + 3 G p* <= 0, i.e. p* <= 0 for psi = 0), the stress returns to the apex,
   sigma = 0.
@@ -47,8 +48,8 @@ CONES = {
     "extension": lambda s: 6.0 * s / (3.0 + s),            # triaxial extension corners
     "plane_strain": lambda s: jnp.sqrt(3.0) * s,           # plane strain, zero dilatancy
 }
-NEWTON_STEPS = 8   # at most; 6 reach round-off (|x - x_bisection| < 1e-14) over E, phi, psi, p, f*, gamma dt, N
-                   # swept over 6-20 decades (tests/test_drucker_prager.py); 2 more for margin
+NEWTON_STEPS = 8   # at most; 6 reach round-off (|x - x_bisection| < 1e-14) over E, phi, psi, p, f*,
+                   # gamma dt, N swept over 6-20 decades (tests/test_drucker_prager.py); 2 more for margin
 TINY = 1e-30
 
 
