@@ -5,6 +5,8 @@ s = sigma + p I, q = sqrt(3/2 s:s). Every square root here is safe: value and gr
 finite at zero.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
@@ -24,8 +26,7 @@ def entries(tensor):
     split: reverse mode turns it into one concatenation, where 9 index reads would become 9 pads
     of the whole array (slow in XLA:CPU's backward pass). Plain JAX (no custom VJP), so forward
     mode works too."""
-    flat = tensor.reshape(tensor.shape[:-2] + (9,))
-    return [part.reshape(tensor.shape[:-2]) for part in jnp.split(flat, 9, axis=-1)]
+    return components(tensor.reshape(tensor.shape[:-2] + (9,)))
 
 
 def stack_last(values):
@@ -88,11 +89,11 @@ def _materialized_jvp(primals, tangents):
     not mix inputs with and without a derivative); those without one stay zero."""
     (values,), (tangents,) = primals, tangents
     if linear_call is None:       # no paired linear maps in this JAX: JAX's own cond
-        tangents = jax.tree_util.tree_map(lambda t, v: jnp.zeros_like(v) if isinstance(t, SymbolicZero) else t,
-                                          tangents, values, is_leaf=lambda t: isinstance(t, SymbolicZero))
-        return conditional_kept_under_vmap(values), through_conditional(tangents)
-    once = paired_linear(lambda _, kept: conditional_kept_under_vmap(kept), lambda _, kept: conditional_kept_under_vmap(kept))
-    out = jax.tree_util.tree_map(lambda t, v: jnp.zeros_like(v) if isinstance(t, SymbolicZero) else once((), t),
+        carry = through_conditional
+    else:
+        carry = functools.partial(paired_linear(lambda _, kept: conditional_kept_under_vmap(kept),
+                                                lambda _, kept: conditional_kept_under_vmap(kept)), ())
+    out = jax.tree_util.tree_map(lambda t, v: jnp.zeros_like(v) if isinstance(t, SymbolicZero) else carry(t),
                                  tangents, values, is_leaf=lambda t: isinstance(t, SymbolicZero))
     return conditional_kept_under_vmap(values), out
 
