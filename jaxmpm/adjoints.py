@@ -14,8 +14,9 @@ same linear map), but JAX 0.10 gives it no batching rule; `_batch_linear_call` b
 (vmap the map and its transpose alike), so `jax.vmap` over calibration starts works too.
 `hand_reversed(function, adjoint)` does the same for a nonlinear function with a hand-written
 reverse mode (the stress updates, `jaxmpm.materials.base.points_update`): a custom JVP whose
-tangent map is such a paired linear map, its residuals the primal inputs; `_linear_call_jvp`
-lets those residuals carry tangents (forward over reverse).
+tangent map is such a paired linear map, its residuals the primal inputs and what the forward
+pass remembered for it; `_linear_call_jvp` lets those residuals carry tangents (forward over
+reverse).
 `linear_call` lives in JAX's private modules: if a JAX release moves it, the maps fall back to
 their plain forward definitions (same values and derivatives, XLA's slower transpose).
 """
@@ -46,40 +47,50 @@ def paired_linear(forward, transpose):
 
 
 def hand_reversed(function, adjoint):
-    """`function(*args)` whose reverse mode is `adjoint(args, cotangents) -> cotangents of
-    args` (written by hand), and whose forward mode is JAX's own jvp of `function`.
+    """A function with a hand-written reverse mode, and JAX's own jvp as its forward mode.
+
+    `function(*args, remembered=None) -> (outputs, remembered)`: its outputs, and values it
+    computes on the way that neither mode should compute again (the root of an implicit
+    equation, say; `()` when there are none). Given `remembered`, it must use them instead.
+    `adjoint(args, remembered, cotangents) -> cotangents of args`. Returns `f(*args) ->
+    outputs`.
 
     A custom JVP whose tangent map is a `paired_linear` map: forward mode evaluates it as
-    `jax.jvp(function)`, reverse mode transposes it by calling `adjoint` at the primal
-    inputs (its only residuals). Inputs whose tangent is a symbolic zero (e.g. a history
-    that starts at zero) are not linear inputs of the map: a transpose must only be asked for
-    cotangents of inputs that really carry a derivative. Without `linear_call`, plain
-    `function`."""
+    `jax.jvp` of `function` with `remembered` held, reverse mode transposes it by calling
+    `adjoint` at the primal inputs and the remembered values (its residuals, with no
+    derivative). Inputs whose tangent is a symbolic zero (e.g. a history that starts at zero)
+    are not linear inputs of the map: a transpose must only be asked for cotangents of inputs
+    that really carry a derivative. Without `linear_call`, `function`'s outputs."""
     if linear_call is None:
-        return function
+        return lambda *args: function(*args)[0]
 
     @jax.custom_jvp
     def wrapped(*args):
-        return function(*args)
+        return function(*args)[0]
 
     def rule(primals, tangents):
         tree = jax.tree_util.tree_structure(tuple(primals))
         tangent_leaves = jax.tree_util.tree_leaves(tuple(tangents), is_leaf=lambda t: isinstance(t, SymbolicZero))
         live = [not isinstance(t, SymbolicZero) for t in tangent_leaves]
 
-        def tangent(primals, live_tangents):
+        def tangent(residuals, live_tangents):
             # zeros made from the map's own residuals, not from the enclosing primals (under
             # vmap those are batched tracers of an outer trace)
+            primals, remembered = residuals
             values = iter(live_tangents)
             full = [next(values) if on else jnp.zeros_like(x) for x, on in zip(jax.tree_util.tree_leaves(primals), live)]
-            return jax.jvp(function, primals, tree.unflatten(full))[1]
+            held = lambda *args: function(*args, remembered=remembered)[0]
+            return jax.jvp(held, primals, tree.unflatten(full))[1]
 
-        def transpose(primals, cotangents):
-            bars = jax.tree_util.tree_leaves(adjoint(primals, cotangents))
+        def transpose(residuals, cotangents):
+            primals, remembered = residuals
+            bars = jax.tree_util.tree_leaves(adjoint(primals, remembered, cotangents))
             return [bar for bar, on in zip(bars, live) if on]
 
+        outputs, remembered = function(*primals)
+        remembered = jax.lax.stop_gradient(remembered)
         live_tangents = [t for t, on in zip(tangent_leaves, live) if on]
-        return function(*primals), paired_linear(tangent, transpose)(tuple(primals), live_tangents)
+        return outputs, paired_linear(tangent, transpose)((tuple(primals), remembered), live_tangents)
 
     wrapped.defjvp(rule, symbolic_zeros=True)
     return wrapped

@@ -68,32 +68,46 @@ class Material:
 def points_update(law, dt):
     """`law.update` over every point: (params, stress (N, 3, 3), L (N, 3, 3), state) ->
     (stress, state). When the law writes its reverse mode by hand (`constants(params)` and
-    the one-point `update_adjoint(constants, stress, L, dt, state, stress_bar, state_bar)`),
-    reverse mode uses it: per-point cotangents of the constants are summed over the points
-    and carried to the parameters by JAX. XLA's own reverse mode of a stress update emits many
-    small kernels (each parameter use becomes its own reduction); forward mode is unchanged."""
+    the one-point `update_adjoint(constants, stress, L, dt, state, remembered, stress_bar,
+    state_bar)`), reverse mode uses it: per-point cotangents of the constants are summed over
+    the points and carried to the parameters by JAX. XLA's own reverse mode of a stress update
+    emits many small kernels (each parameter use becomes its own reduction); forward mode is
+    unchanged. A law may remember values of its forward pass for the adjoint
+    (`update_remembering(params, stress, L, dt, state, remembered=None) -> ((stress, state),
+    remembered)`, e.g. the root of the Perzyna equation), which then need not compute them
+    again."""
     def plain(params, stress, velocity_gradient, state):
         return jax.vmap(law.update, in_axes=(None, 0, 0, None, 0))(params, stress, velocity_gradient, dt, state)
 
     if not hasattr(law, "update_adjoint"):
         return plain
 
+    def remembering(params, stress, velocity_gradient, state, remembered=None):
+        if not hasattr(law, "update_remembering"):
+            return plain(params, stress, velocity_gradient, state), ()
+        one_point = lambda *args: law.update_remembering(*args[:5], remembered=args[5])
+        return jax.vmap(one_point, in_axes=(None, 0, 0, None, 0, 0))(params, stress, velocity_gradient, dt, state, remembered)
+
     keeps_history = getattr(law, "keeps_history", False)
 
-    def adjoint(primals, cotangents):
+    def adjoint(primals, remembered, cotangents):
         params, stress, velocity_gradient, state = primals
         if keeps_history:
             cotangents = (cotangents, jax.tree_util.tree_map(jnp.zeros_like, state))
         constants, constants_vjp = jax.vjp(law.constants, params)
-        one_point = jax.vmap(law.update_adjoint, in_axes=(None, 0, 0, None, 0, 0, 0))
+        one_point = jax.vmap(law.update_adjoint, in_axes=(None, 0, 0, None, 0, 0, 0, 0))
         constants_bar, stress_bar, gradient_bar, state_bar = one_point(
-            constants, stress, velocity_gradient, dt, state, *cotangents)
+            constants, stress, velocity_gradient, dt, state, remembered, *cotangents)
         (params_bar,) = constants_vjp(jax.tree_util.tree_map(lambda bar: jnp.sum(bar, axis=0), constants_bar))
         return params_bar, stress_bar, gradient_bar, state_bar
 
     if not keeps_history:
-        return hand_reversed(plain, adjoint)
+        return hand_reversed(remembering, adjoint)
     # A history the law passes through unchanged stays outside the custom derivative: its
     # tangent must keep the batching of its primal (under vmap, inside loops).
-    new_stress = hand_reversed(lambda *args: plain(*args)[0], adjoint)
+    def new_stress(*args, remembered=None):
+        (stress, _), remembered = remembering(*args, remembered=remembered)
+        return stress, remembered
+
+    new_stress = hand_reversed(new_stress, adjoint)
     return lambda params, stress, velocity_gradient, state: (new_stress(params, stress, velocity_gradient, state), state)

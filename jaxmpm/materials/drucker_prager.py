@@ -29,6 +29,7 @@ History variable: `plastic_strain`, the accumulated equivalent plastic strain (s
 """
 
 import dataclasses
+import functools
 from typing import ClassVar
 
 import jax
@@ -58,12 +59,33 @@ def cone_slope(cone, angle_degrees):
     return CONES[cone](jnp.sin(jnp.deg2rad(angle_degrees)))
 
 
-def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent):
+def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent, root=None):
     """x in [0, 1] with dl = x f*/H solving the backward-Euler Perzyna equation (see module).
     trial_overstress f* > 0; hardening H; pressure_trial p* > 0; dilation_rate K m_psi;
     m the cone slope; rate = gamma dt; exponent N. Value from bracketed Newton steps on
-    t = logit(x), gradient from the implicit function theorem.
+    t = logit(x) (`perzyna_root_of`; or `root`, that t already solved: the reverse mode reads the
+    forward pass's), gradient from the implicit function theorem.
     """
+    equation = perzyna_equation(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent)
+    if root is None:
+        root = solve_perzyna(equation)
+    root = jax.lax.stop_gradient(root)
+    residual = equation["residual"]
+    # Implicit function theorem: dt/dtheta = -(dR/dtheta) / (dR/dt) at the root.
+    slope = jax.lax.stop_gradient(jax.grad(residual)(root))
+    value = residual(root)
+    return jax.nn.sigmoid(root - (value - jax.lax.stop_gradient(value)) / slope)
+
+
+def perzyna_root_of(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent):
+    """t = logit(x) of `perzyna_fraction`, by bracketed Newton steps (no derivative)."""
+    return jax.lax.stop_gradient(solve_perzyna(perzyna_equation(
+        trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent)))
+
+
+def perzyna_equation(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent):
+    """The residual R(t) of the Perzyna equation in t = logit(x) (see the module docstring),
+    with the terms `solve_perzyna` reads."""
     largest = trial_overstress / hardening
     constant = jnp.log(largest) - jnp.log(rate) - exponent * jnp.log(trial_overstress)
     growth = dilation_rate * largest            # p(x) = p* + growth x
@@ -74,15 +96,16 @@ def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate,
         return (jax.nn.log_sigmoid(t) - exponent * jax.nn.log_sigmoid(-t)
                 + exponent * jnp.log(jnp.maximum(m * pressure, TINY)) + constant)
 
-    def residual_and_slope(t):
-        return perzyna_residual_and_slope(t, pressure_trial, growth, m, exponent, constant)
+    return {"residual": residual, "constant": constant, "growth": growth, "pressure_trial": pressure_trial,
+            "m": m, "exponent": exponent}
 
-    root = jax.lax.stop_gradient(bracketed_newton(residual_and_slope, *perzyna_bracket(
-        residual, constant, exponent, m, pressure_trial, growth)))
-    # Implicit function theorem: dt/dtheta = -(dR/dtheta) / (dR/dt) at the root.
-    slope = jax.lax.stop_gradient(jax.grad(residual)(root))
-    value = residual(root)
-    return jax.nn.sigmoid(root - (value - jax.lax.stop_gradient(value)) / slope)
+
+def solve_perzyna(equation):
+    """The root t of a `perzyna_equation`: bracketed Newton steps from the asymptote."""
+    terms = [equation[name] for name in ("pressure_trial", "growth", "m", "exponent", "constant")]
+    bracket = perzyna_bracket(equation["residual"], equation["constant"], equation["exponent"], equation["m"],
+                              equation["pressure_trial"], equation["growth"])
+    return bracketed_newton(lambda t: perzyna_residual_and_slope(t, *terms), *bracket)
 
 
 def perzyna_residual_and_slope(t, pressure_trial, growth, m, exponent, constant):
@@ -237,10 +260,17 @@ class DruckerPragerLaw:
 
     def update(self, params, stress, velocity_gradient, dt, state):
         """One point: Jaumann rotation, elastic trial, plastic / viscoplastic correction."""
+        return self.update_remembering(params, stress, velocity_gradient, dt, state)[0]
+
+    def update_remembering(self, params, stress, velocity_gradient, dt, state, remembered=None):
+        """`update`, and what its reverse mode reads instead of solving again: the root of the
+        Perzyna equation ({"perzyna_root": t}; {} when rate-independent). Given `remembered`,
+        the root is not solved for."""
         constants = self.constants(params)
         trial = elastic_trial_entries(constants, stress, velocity_gradient, dt)
-        returned = self.return_state(constants, trial, dt)
-        return tensors.from_entries(returned["stress"]), {"plastic_strain": state["plastic_strain"] + returned["increment"]}
+        returned = self.return_state(constants, trial, dt, **(remembered or {}))
+        updated = tensors.from_entries(returned["stress"]), {"plastic_strain": state["plastic_strain"] + returned["increment"]}
+        return updated, ({"perzyna_root": returned["perzyna_root"]} if self.viscoplastic else {})
 
     def correct(self, params, trial, dt):
         """Return the trial stress to the admissible set: (stress, plastic multiplier dl)."""
@@ -262,9 +292,10 @@ class DruckerPragerLaw:
             constants.update(fluidity=params["fluidity"], exponent=params["exponent"])
         return constants
 
-    def return_state(self, constants, trial, dt):
+    def return_state(self, constants, trial, dt, perzyna_root=None):
         """The return of the trial entries to the admissible set, with the intermediates its
-        adjoint reads: {"stress": 9 entries, "increment": dl, ...} (see the module docstring)."""
+        adjoint reads: {"stress": 9 entries, "increment": dl, ...} (see the module docstring).
+        perzyna_root: the root t of the Perzyna equation, when already solved."""
         shear, m, dilation_rate = constants["shear"], constants["slope"], constants["dilation_rate"]
         pressure = -(trial[0] + trial[4] + trial[8]) / 3.0
         trial_deviator = tensors.deviator_entries(trial)
@@ -284,7 +315,9 @@ class DruckerPragerLaw:
         if self.viscoplastic:
             safe_rate = jnp.where(to_cone, constants["fluidity"] * dt, 1.0)
             perzyna = (safe_overstress, hardening, safe_pressure, dilation_rate, m, safe_rate, constants["exponent"])
-            fraction = perzyna_fraction(*perzyna)
+            if perzyna_root is None:
+                perzyna_root = perzyna_root_of(*perzyna)
+            fraction = perzyna_fraction(*perzyna, root=perzyna_root)
         multiplier = fraction * safe_overstress / hardening
         new_deviatoric = safe_deviatoric - 3.0 * shear * multiplier
         new_pressure = safe_pressure + dilation_rate * multiplier
@@ -297,19 +330,19 @@ class DruckerPragerLaw:
         return {"stress": stress, "increment": increment, "pressure": pressure, "deviator": trial_deviator,
                 "deviatoric": deviatoric, "safe_overstress": safe_overstress, "safe_deviatoric": safe_deviatoric,
                 "hardening": hardening, "to_cone": to_cone, "to_apex": to_apex, "fraction": fraction,
-                "perzyna": perzyna, "multiplier": multiplier, "ratio": ratio}
+                "perzyna": perzyna, "perzyna_root": perzyna_root, "multiplier": multiplier, "ratio": ratio}
 
-    def update_adjoint(self, constants, stress, velocity_gradient, dt, state, stress_bar, state_bar):
+    def update_adjoint(self, constants, stress, velocity_gradient, dt, state, remembered, stress_bar, state_bar):
         """Reverse mode of `update` at one point, by hand: (constants_bar, stress_bar, L_bar,
         state_bar). Recomputes the trial and the return, then runs their chain rule backwards:
         sigma = r s - p' I on the cone (r = q'/q, q' = q - 3 G dl, p' = p + K m_psi dl,
         dl = x f/H, f = q - m p, H = 3 G + m K m_psi; x = 1, or the Perzyna fraction, whose
-        cotangents come from its own implicit-function VJP), sigma = 0 at the apex
+        cotangents come from its own implicit-function VJP at the remembered root), sigma = 0 at the apex
         (dl = q / 3G), sigma = trial when elastic; then q = sqrt(3/2 s:s), s = dev(t), and the
         elastic trial (elastic_trial_adjoint)."""
         shear, m, dilation_rate = constants["shear"], constants["slope"], constants["dilation_rate"]
         trial = elastic_trial_entries(constants, stress, velocity_gradient, dt)
-        r = self.return_state(constants, trial, dt)
+        r = self.return_state(constants, trial, dt, **remembered)
         cone, apex = r["to_cone"], r["to_apex"]
         zero = jnp.zeros_like(r["pressure"])
         out_bar = tensors.entries(stress_bar)
@@ -330,7 +363,7 @@ class DruckerPragerLaw:
         hardening_bar = -multiplier_bar * r["multiplier"] / hardening
         bars["slope"] = zero
         if self.viscoplastic:
-            _, fraction_vjp = jax.vjp(perzyna_fraction, *r["perzyna"])
+            _, fraction_vjp = jax.vjp(functools.partial(perzyna_fraction, root=r["perzyna_root"]), *r["perzyna"])
             f_bar, h_bar, p_bar, dilation_rate_bar, m_bar, gamma_dt_bar, exponent_bar = fraction_vjp(fraction_bar)
             safe_overstress_bar = safe_overstress_bar + f_bar
             hardening_bar = hardening_bar + h_bar

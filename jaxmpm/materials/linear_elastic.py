@@ -129,9 +129,9 @@ class ElasticLaw:
         """What update_adjoint's cotangents are taken with respect to: the moduli K and G."""
         return elastic_moduli(params)
 
-    def update_adjoint(self, constants, stress, velocity_gradient, dt, state, stress_bar, state_bar):
+    def update_adjoint(self, constants, stress, velocity_gradient, dt, state, remembered, stress_bar, state_bar):
         """Reverse mode of `update` at one point, by hand (see elastic_trial_adjoint):
-        (constants_bar, stress_bar, L_bar, state_bar)."""
+        (constants_bar, stress_bar, L_bar, state_bar); nothing is remembered."""
         constants_bar, stress_bar, gradient_bar = elastic_trial_adjoint(
             constants, stress, velocity_gradient, dt, tensors.entries(stress_bar))
         return constants_bar, tensors.from_entries(stress_bar), tensors.from_entries(gradient_bar), state_bar
