@@ -4,6 +4,7 @@ forward over reverse, and under vmap (with batched point positions). Through the
 checkpointed rollout, tests/test_gradients.py checks the gradients against finite differences."""
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -169,3 +170,36 @@ def test_hand_written_stress_adjoint_under_other_transformations(transform):
             results.append(jax.grad(lambda y, loss=loss: loss(y, stress))(young))
     assert float(jnp.max(jnp.abs(jax.tree.leaves(results[0])[0]))) > 0.0
     assert_same_trees(results[1], results[0], rtol=1e-10)
+
+
+def count_primitive(jaxpr, name):
+    """How many equations of `jaxpr` and of every jaxpr nested in it bind primitive `name`."""
+    count = 0
+    for equation in jaxpr.eqns:
+        count += equation.primitive.name == name
+        for value in equation.params.values():
+            for inner in value if isinstance(value, (tuple, list)) else (value,):
+                if isinstance(inner, jax.extend.core.ClosedJaxpr):
+                    count += count_primitive(inner.jaxpr, name)
+                elif isinstance(inner, jax.extend.core.Jaxpr):
+                    count += count_primitive(inner, name)
+    return count
+
+
+@pytest.mark.parametrize("transform", ["grad", "jvp"])
+def test_perzyna_derivatives_read_the_remembered_root(transform):
+    # The Newton solve of the Perzyna equation is a while loop. The forward pass solves it once;
+    # the hand-written adjoint and the forward-mode tangent read its root instead of solving
+    # again (the plain formulation's reverse mode holds the loop once too, through the root's
+    # stop_gradient and the implicit-function expression).
+    _, params, _, hand = update_pair("perzyna")
+    stress, gradient, history = point_states(50)
+
+    def loss(young):
+        new, state = hand(dict(params, young=young), stress, gradient, history)
+        return jnp.sum(new) + jnp.sum(state["plastic_strain"])
+
+    young = params["young"]
+    derivative = jax.grad(loss) if transform == "grad" else (lambda y: jax.jvp(loss, (y,), (1.0,)))
+    assert count_primitive(jax.make_jaxpr(loss)(young).jaxpr, "while") == 1
+    assert count_primitive(jax.make_jaxpr(derivative)(young).jaxpr, "while") == 1
