@@ -342,6 +342,9 @@ class DruckerPragerLaw:
         elastic trial (elastic_trial_adjoint)."""
         shear, m, dilation_rate = constants["shear"], constants["slope"], constants["dilation_rate"]
         trial = elastic_trial_entries(constants, stress, velocity_gradient, dt)
+        # computed once: every kernel of the adjoint re-derived the trial from sigma and L
+        # (gradients 3-7 % faster, docs/benchmarks.md, 2026-12-04)
+        trial = tensors.materialized(trial)
         r = self.return_state(constants, trial, dt, **remembered)
         cone, apex = r["to_cone"], r["to_apex"]
         zero = jnp.zeros_like(r["pressure"])

