@@ -29,6 +29,7 @@ History variable: `plastic_strain`, the accumulated equivalent plastic strain (s
 """
 
 import dataclasses
+import functools
 from typing import ClassVar
 
 import jax
@@ -105,37 +106,6 @@ def solve_perzyna(equation):
     bracket = perzyna_bracket(equation["residual"], equation["constant"], equation["exponent"], equation["m"],
                               equation["pressure_trial"], equation["growth"])
     return bracketed_newton(lambda t: perzyna_residual_and_slope(t, *terms), *bracket)
-
-
-def perzyna_fraction_adjoint(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent, root,
-                             fraction_bar):
-    """Reverse mode of `perzyna_fraction` at its root t, by hand: the cotangents of its seven
-    inputs. Implicit function theorem: dx/dtheta = -x (1 - x) (dR/dtheta) / (dR/dt), with
-    R = log x - N log(1 - x) + N log(m p) + c, p = p* + g x, g = K m_psi f*/H,
-    c = log(f*/H) - log(gamma dt) - N log f*, so dR/dp* = N/p, dR/dg = N x/p, dR/dm = N/m,
-    dR/dc = 1, dR/dN = -log(1 - x) + log(m p) - log f* (the log(m p) term is cut off below
-    TINY, as in the residual). Where JAX's reverse mode of the log-sigmoids stood, the
-    viscoplastic examples' gradients ran 3 % faster (docs/benchmarks.md, 2026-12-04)."""
-    e = jnp.exp(-jnp.abs(root))
-    x = jnp.where(root >= 0.0, 1.0, e) / (1.0 + e)
-    growth = dilation_rate * trial_overstress / hardening
-    pressure = pressure_trial + growth * x
-    scaled = m * pressure
-    kept = scaled > TINY
-    inverse_scaled = jnp.where(kept, 1.0 / jnp.where(kept, scaled, 1.0), 0.0)
-    along_growth = exponent * m * x * inverse_scaled                  # dR/dg
-    slope = (1.0 - x) + exponent * x + along_growth * growth * (1.0 - x)
-    scale = -fraction_bar * x * (1.0 - x) / slope                     # theta_bar = scale dR/dtheta
-    softplus = jnp.maximum(root, 0.0) + jnp.log1p(e)                  # -log(1 - x)
-    return (
-        scale * (along_growth * dilation_rate / hardening + (1.0 - exponent) / trial_overstress),
-        -scale * (along_growth * growth + 1.0) / hardening,
-        scale * exponent * m * inverse_scaled,
-        scale * along_growth * trial_overstress / hardening,
-        scale * exponent * pressure * inverse_scaled,
-        -scale / rate,
-        scale * (softplus + jnp.log(jnp.maximum(scaled, TINY)) - jnp.log(trial_overstress)),
-    )
 
 
 def perzyna_residual_and_slope(t, pressure_trial, growth, m, exponent, constant):
@@ -367,8 +337,7 @@ class DruckerPragerLaw:
         state_bar). Recomputes the trial and the return, then runs their chain rule backwards:
         sigma = r s - p' I on the cone (r = q'/q, q' = q - 3 G dl, p' = p + K m_psi dl,
         dl = x f/H, f = q - m p, H = 3 G + m K m_psi; x = 1, or the Perzyna fraction, whose
-        cotangents come from the implicit function theorem at the remembered root,
-        `perzyna_fraction_adjoint`), sigma = 0 at the apex
+        cotangents come from its own implicit-function VJP at the remembered root), sigma = 0 at the apex
         (dl = q / 3G), sigma = trial when elastic; then q = sqrt(3/2 s:s), s = dev(t), and the
         elastic trial (elastic_trial_adjoint)."""
         shear, m, dilation_rate = constants["shear"], constants["slope"], constants["dilation_rate"]
@@ -397,8 +366,8 @@ class DruckerPragerLaw:
         hardening_bar = -multiplier_bar * r["multiplier"] / hardening
         bars["slope"] = zero
         if self.viscoplastic:
-            f_bar, h_bar, p_bar, dilation_rate_bar, m_bar, gamma_dt_bar, exponent_bar = perzyna_fraction_adjoint(
-                *r["perzyna"], r["perzyna_root"], fraction_bar)
+            _, fraction_vjp = jax.vjp(functools.partial(perzyna_fraction, root=r["perzyna_root"]), *r["perzyna"])
+            f_bar, h_bar, p_bar, dilation_rate_bar, m_bar, gamma_dt_bar, exponent_bar = fraction_vjp(fraction_bar)
             safe_overstress_bar = safe_overstress_bar + f_bar
             hardening_bar = hardening_bar + h_bar
             safe_pressure_bar = safe_pressure_bar + p_bar
