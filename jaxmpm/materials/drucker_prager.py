@@ -66,11 +66,9 @@ def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate,
     t = logit(x) (`perzyna_root_of`; or `root`, that t already solved: the reverse mode reads the
     forward pass's), gradient from the implicit function theorem.
     """
-    equation = perzyna_equation(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent)
-    if root is None:
-        root = solve_perzyna(equation)
-    root = jax.lax.stop_gradient(root)
-    residual = equation["residual"]
+    arguments = (trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent)
+    root = jax.lax.stop_gradient(perzyna_root_of(*arguments) if root is None else root)
+    residual = perzyna_equation(*arguments)["residual"]
     # Implicit function theorem: dt/dtheta = -(dR/dtheta) / (dR/dt) at the root.
     slope = jax.lax.stop_gradient(jax.grad(residual)(root))
     value = residual(root)
@@ -78,14 +76,17 @@ def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate,
 
 
 def perzyna_root_of(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent):
-    """t = logit(x) of `perzyna_fraction`, by bracketed Newton steps (no derivative)."""
-    return jax.lax.stop_gradient(solve_perzyna(perzyna_equation(
-        trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent)))
+    """t = logit(x) of `perzyna_fraction`, by bracketed Newton steps from the asymptote (no
+    derivative)."""
+    equation = perzyna_equation(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent)
+    terms = [equation[name] for name in ("pressure_trial", "growth", "m", "exponent", "constant")]
+    bracket = perzyna_bracket(equation["residual"], equation["constant"], exponent, m, pressure_trial, equation["growth"])
+    return jax.lax.stop_gradient(bracketed_newton(lambda t: perzyna_residual_and_slope(t, *terms), *bracket))
 
 
 def perzyna_equation(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent):
     """The residual R(t) of the Perzyna equation in t = logit(x) (see the module docstring),
-    with the terms `solve_perzyna` reads."""
+    with the terms the Newton steps read."""
     largest = trial_overstress / hardening
     constant = jnp.log(largest) - jnp.log(rate) - exponent * jnp.log(trial_overstress)
     growth = dilation_rate * largest            # p(x) = p* + growth x
@@ -98,14 +99,6 @@ def perzyna_equation(trial_overstress, hardening, pressure_trial, dilation_rate,
 
     return {"residual": residual, "constant": constant, "growth": growth, "pressure_trial": pressure_trial,
             "m": m, "exponent": exponent}
-
-
-def solve_perzyna(equation):
-    """The root t of a `perzyna_equation`: bracketed Newton steps from the asymptote."""
-    terms = [equation[name] for name in ("pressure_trial", "growth", "m", "exponent", "constant")]
-    bracket = perzyna_bracket(equation["residual"], equation["constant"], equation["exponent"], equation["m"],
-                              equation["pressure_trial"], equation["growth"])
-    return bracketed_newton(lambda t: perzyna_residual_and_slope(t, *terms), *bracket)
 
 
 def perzyna_residual_and_slope(t, pressure_trial, growth, m, exponent, constant):
