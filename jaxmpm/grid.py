@@ -9,10 +9,12 @@ scatter rows (measured in benchmarks/).
 """
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_batching import custom_vmap
 
 from jaxmpm.adjoints import paired_linear
 from jaxmpm.shapes import make_shape, stencil
@@ -112,6 +114,38 @@ def add_to_nodes(layout, base, values, field=None, fields=1):
     )
 
 
+def add_to_nodes_batched(layout, base, values, field=None, fields=1):
+    """`add_to_nodes`, whose `jax.vmap` stays one scatter with contiguous windows
+    (`batched_scatter`); it has no reverse mode of its own (the paired maps give it one)."""
+    field = jnp.zeros(len(base), jnp.int32) if field is None else field
+    return batched_scatter(layout, fields)(base, values, field)
+
+
+@functools.cache
+def batched_scatter(layout, fields):
+    """`add_to_nodes` on `layout` with `fields` fields as a function of (base, values, field),
+    batched by hand. JAX's own batching of a scatter puts the batch axis first in the node
+    array, so that each row's window is B pieces far apart: the three tangents of the heap
+    calibration's forward-mode Jacobian scattered 40x slower than their primal
+    (docs/benchmarks.md, 2026-12-04). Here a batch of B is B F fields of one scatter, whose
+    rows are the batch's B N rows."""
+
+    @custom_vmap
+    def scatter(base, values, field):
+        return add_to_nodes(layout, base, values, field, fields)
+
+    @scatter.def_vmap
+    def _(axis_size, in_batched, base, values, field):
+        batched = lambda array, on: array if on else jnp.broadcast_to(array, (axis_size,) + array.shape)   # noqa: E731
+        base, values, field = (batched(array, on) for array, on in zip((base, values, field), in_batched))
+        field = field + fields * jnp.arange(axis_size, dtype=field.dtype)[:, None]   # batch b: fields b F ...
+        rows = lambda array: array.reshape((-1,) + array.shape[2:])   # noqa: E731
+        out = batched_scatter(layout, axis_size * fields)(rows(base), rows(values), rows(field))
+        return out.reshape((axis_size, fields) + out.shape[1:]), True
+
+    return scatter
+
+
 def read_at_stencils(layout, base, nodes, support, field=None):
     """Node values (fields, nx, ny, C) at each point's s x s stencil in its own field: (N, s, s, C).
 
@@ -130,7 +164,7 @@ def scatter_to_nodes(layout, base, values, field=None, fields=1):
     support = values.shape[1]
 
     def add(indices, values):
-        return add_to_nodes(layout, indices[0], values, indices[1], fields)
+        return add_to_nodes_batched(layout, indices[0], values, indices[1], fields)
 
     def read(indices, nodes):   # the node cotangents are read at every stencil entry: computed once
         return read_at_stencils(layout, indices[0], materialized(nodes), support, indices[1])
@@ -149,7 +183,7 @@ def gather_from_nodes(layout, base, nodes, support, field=None):
         return read_at_stencils(layout, indices[0], nodes, support, indices[1])
 
     def add(indices, values):
-        return add_to_nodes(layout, indices[0], values, indices[1], fields)
+        return add_to_nodes_batched(layout, indices[0], values, indices[1], fields)
 
     return paired_linear(read, add)((base, field), nodes)
 
