@@ -46,17 +46,17 @@ def paired_linear(forward, transpose):
     return call
 
 
-def hand_reversed(function, adjoint):
+def hand_reversed(function, adjoint, tangent_function=None):
     """A function with a hand-written reverse mode, and JAX's own jvp as its forward mode.
 
     `function(*args, remembered=None) -> (outputs, remembered)`: its outputs, and values it
     computes on the way that neither mode should compute again (the root of an implicit
     equation, say; `()` when there are none). Given `remembered`, it must use them instead.
-    `adjoint(args, remembered, cotangents) -> cotangents of args`. Returns `f(*args) ->
-    outputs`.
+    `adjoint(args, remembered, cotangents) -> cotangents of args`. `tangent_function`: the same
+    function written for forward mode (default `function`). Returns `f(*args) -> outputs`.
 
     A custom JVP whose tangent map is a `paired_linear` map: forward mode evaluates it as
-    `jax.jvp` of `function` with `remembered` held, reverse mode transposes it by calling
+    `jax.jvp` of `tangent_function` with `remembered` held, reverse mode transposes it by calling
     `adjoint` at the primal inputs and the remembered values (its residuals, with no
     derivative). Inputs whose tangent is a symbolic zero (e.g. a history that starts at zero)
     are not linear inputs of the map: a transpose must only be asked for cotangents of inputs
@@ -79,7 +79,7 @@ def hand_reversed(function, adjoint):
             primals, remembered = residuals
             values = iter(live_tangents)
             full = [next(values) if on else jnp.zeros_like(x) for x, on in zip(jax.tree_util.tree_leaves(primals), live)]
-            held = lambda *args: function(*args, remembered=remembered)[0]
+            held = lambda *args: (tangent_function or function)(*args, remembered=remembered)[0]
             return jax.jvp(held, primals, tree.unflatten(full))[1]
 
         def transpose(residuals, cotangents):

@@ -21,6 +21,7 @@ compiled code. `Material` gives every material the law's `update`, `init_state` 
 """
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -75,17 +76,18 @@ def points_update(law, dt):
     unchanged. A law may remember values of its forward pass for the adjoint
     (`update_remembering(params, stress, L, dt, state, remembered=None) -> ((stress, state),
     remembered)`, e.g. the root of the Perzyna equation), which then need not compute them
-    again."""
+    again; forward mode calls it with `shared_once=True`, where the law computes once the values
+    its outputs' tangents share."""
     def plain(params, stress, velocity_gradient, state):
         return jax.vmap(law.update, in_axes=(None, 0, 0, None, 0))(params, stress, velocity_gradient, dt, state)
 
     if not hasattr(law, "update_adjoint"):
         return plain
 
-    def remembering(params, stress, velocity_gradient, state, remembered=None):
+    def remembering(params, stress, velocity_gradient, state, remembered=None, shared_once=False):
         if not hasattr(law, "update_remembering"):
             return plain(params, stress, velocity_gradient, state), ()
-        one_point = lambda *args: law.update_remembering(*args[:5], remembered=args[5])
+        one_point = lambda *args: law.update_remembering(*args[:5], remembered=args[5], shared_once=shared_once)
         return jax.vmap(one_point, in_axes=(None, 0, 0, None, 0, 0))(params, stress, velocity_gradient, dt, state, remembered)
 
     keeps_history = getattr(law, "keeps_history", False)
@@ -102,7 +104,7 @@ def points_update(law, dt):
         return params_bar, stress_bar, gradient_bar, state_bar
 
     if not keeps_history:
-        return hand_reversed(remembering, adjoint)
+        return hand_reversed(remembering, adjoint, functools.partial(remembering, shared_once=True))
     # A history the law passes through unchanged stays outside the custom derivative: its
     # tangent must keep the batching of its primal (under vmap, inside loops).
     def new_stress(*args, remembered=None):
