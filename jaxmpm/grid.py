@@ -9,7 +9,6 @@ scatter rows (measured in benchmarks/).
 """
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -121,7 +120,6 @@ def add_to_nodes_batched(layout, base, values, field=None, fields=1):
     return batched_scatter(layout, fields)(base, values, field)
 
 
-@functools.cache
 def batched_scatter(layout, fields):
     """`add_to_nodes` on `layout` with `fields` fields as a function of (base, values, field),
     batched by hand. JAX's own batching of a scatter puts the batch axis first in the node
