@@ -202,7 +202,7 @@ def test_hand_written_stress_adjoint_matches_jax_reverse_mode(name):
     assert_same_trees(ours, theirs)
 
 
-@pytest.mark.parametrize("transform", ["jvp", "vmap_grad", "jvp_of_grad", "zero_history"])
+@pytest.mark.parametrize("transform", ["jvp", "vmap_jvp", "vmap_grad", "jvp_of_grad", "zero_history"])
 def test_hand_written_stress_adjoint_under_other_transformations(transform):
     _, params, plain, hand = update_pair("perzyna")
     stress, gradient, history = point_states(200)
@@ -219,6 +219,9 @@ def test_hand_written_stress_adjoint_under_other_transformations(transform):
         loss = misfit(update)
         if transform == "jvp":
             results.append(jax.jvp(loss, (young, stress), (1e4, stress))[1])
+        elif transform == "vmap_jvp":    # Levenberg-Marquardt's pass: a batch of tangents, one primal
+            push = lambda tangent, loss=loss: jax.jvp(loss, (young, stress), (tangent, stress * tangent / 1e4))  # noqa: E731
+            results.append(jax.vmap(push, out_axes=(None, 0))(jnp.array([1e4, -2e4, 5e3]))[1])
         elif transform == "vmap_grad":
             results.append(jax.vmap(jax.grad(loss, argnums=(0, 1)), in_axes=(0, None))(young * jnp.array([0.5, 1.0, 2.0]), stress))
         elif transform == "jvp_of_grad":
