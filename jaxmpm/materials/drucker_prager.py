@@ -261,9 +261,9 @@ class DruckerPragerLaw:
         the root is not solved for. shared_once: compute the values that several outputs read
         once, before they read them (`tensors.materialized`: the trial stress, p and q, dl, the
         ratio q'/q and p'), as forward mode does (`points_update`): each stress entry's tangent
-        was its own kernel that re-derived them all, and the heap example's Jacobians ran
-        25-28 % faster so; the forward pass keeps XLA's own choice, 5-9 % faster at 16k points
-        (docs/benchmarks.md, 2026-12-04)."""
+        was its own kernel that re-derived them all, and Jacobians of the calibration examples
+        ran 10-28 % faster so; the forward pass keeps XLA's own choice, 5-9 % faster at 16k
+        points (docs/benchmarks.md, 2026-12-04)."""
         constants = self.constants(params)
         trial = elastic_trial_entries(constants, stress, velocity_gradient, dt)
         once = tensors.materialized if shared_once else (lambda values: values)
