@@ -22,14 +22,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from throughput import machine_info, write_section  # noqa: E402  (same directory)
+from compile_times import machine_sentence, run_each_scene  # noqa: E402  (same directory)
+from throughput import write_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 BEGIN, END = "<!-- calibration_passes:begin -->", "<!-- calibration_passes:end -->"
@@ -98,14 +98,11 @@ def table(results: list[dict]) -> str:
 
 
 def section(results: list[dict]) -> str:
-    machine = machine_info()
     return "\n".join([
         "## What a calibration iteration costs",
         "",
-        f"Machine: {machine['cpu']}, {machine['cores']} cores, {machine['memory']}; Python {machine['python']}, "
-        f"JAX {machine['jax']}; jaxmpm {machine['commit']}; {machine['date']}; 1-minute load average "
-        f"{machine['load']:.1f} after the run. `python benchmarks/calibration_passes.py`, one fresh process per "
-        "scene, float64, persistent compilation cache off.",
+        machine_sentence("benchmarks/calibration_passes.py",
+                         "one fresh process per scene, float64, persistent compilation cache off"),
         "",
         table(results),
         "",
@@ -127,19 +124,8 @@ def main():
     if args.scene:
         print(json.dumps(measure(Path(args.scene), args.repeats)))
         return
-    results = []
-    for path in calibration_scenes():
-        if args.only and path.name not in args.only:
-            continue
-        print(f"scene {path.name} ...", file=sys.stderr, flush=True)
-        command = [sys.executable, __file__, "--scene", str(path), "--repeats", str(args.repeats)]
-        done = subprocess.run(command, capture_output=True, text=True,
-                              env={**os.environ, "JAXMPM_CACHE_DIR": "off", "PYTHONPATH": str(ROOT)})
-        if done.returncode:
-            print(done.stderr[-2000:], file=sys.stderr)
-            continue
-        results.append(json.loads(done.stdout.strip().splitlines()[-1]))
-        print(json.dumps(results[-1]), file=sys.stderr)
+    environment = {**os.environ, "JAXMPM_CACHE_DIR": "off", "PYTHONPATH": str(ROOT)}
+    results = run_each_scene(__file__, calibration_scenes(), args.only, ("--repeats", str(args.repeats)), environment)
     print(table(results))
     if not args.no_write and not args.only:
         write_section(BEGIN, END, section(results))

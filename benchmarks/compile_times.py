@@ -92,15 +92,37 @@ def table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def section(results: list[dict]) -> str:
+def machine_sentence(command: str, how: str) -> str:
+    """The machine, versions, commit, date and load of a per-scene benchmark, and how it ran."""
     machine = machine_info()
+    return (f"Machine: {machine['cpu']}, {machine['cores']} cores, {machine['memory']}; Python {machine['python']}, "
+            f"JAX {machine['jax']}; jaxmpm {machine['commit']}; {machine['date']}; 1-minute load average "
+            f"{machine['load']:.1f} after the run. `python {command}`, {how}.")
+
+
+def run_each_scene(script: str, paths: list[Path], only, extra=(), env=None) -> list[dict]:
+    """Run `script --scene PATH *extra` in a fresh process per scene (those named in `only`,
+    or all); each prints its result as a JSON line last. Failed scenes are reported, skipped."""
+    results = []
+    for path in paths:
+        if only and path.name not in only:
+            continue
+        print(f"scene {path.name} ...", file=sys.stderr, flush=True)
+        done = subprocess.run([sys.executable, script, "--scene", str(path), *extra], capture_output=True, text=True,
+                              env=env)
+        if done.returncode:
+            print(done.stderr[-2000:], file=sys.stderr)
+            continue
+        results.append(json.loads(done.stdout.strip().splitlines()[-1]))
+        print(json.dumps(results[-1]), file=sys.stderr)
+    return results
+
+
+def section(results: list[dict]) -> str:
     return "\n".join([
         "## Compile time of the example scenes",
         "",
-        f"Machine: {machine['cpu']}, {machine['cores']} cores, {machine['memory']}; Python {machine['python']}, "
-        f"JAX {machine['jax']}; jaxmpm {machine['commit']}; {machine['date']}; 1-minute load average "
-        f"{machine['load']:.1f} after the run. `python benchmarks/compile_times.py`, one fresh process per scene, "
-        "persistent compilation cache off.",
+        machine_sentence("benchmarks/compile_times.py", "one fresh process per scene, persistent compilation cache off"),
         "",
         table(results),
         "",
@@ -121,17 +143,7 @@ def main():
     if args.scene:
         print(json.dumps(measure(Path(args.scene))))
         return
-    results = []
-    for path in example_scenes():
-        if args.only and path.name not in args.only:
-            continue
-        print(f"scene {path.name} ...", file=sys.stderr, flush=True)
-        done = subprocess.run([sys.executable, __file__, "--scene", str(path)], capture_output=True, text=True)
-        if done.returncode:
-            print(done.stderr[-2000:], file=sys.stderr)
-            continue
-        results.append(json.loads(done.stdout.strip().splitlines()[-1]))
-        print(json.dumps(results[-1]), file=sys.stderr)
+    results = run_each_scene(__file__, example_scenes(), args.only)
     print(table(results))
     if not args.no_write and not args.only:
         write_section(BEGIN, END, section(results))
