@@ -54,6 +54,11 @@ NEWTON_STEPS = 8   # at most; 6 reach round-off (|x - x_bisection| < 1e-14) over
 TINY = 1e-30
 
 
+def as_computed(values):
+    """`values` unchanged (where forward mode would compute them once: `update_remembering`)."""
+    return values
+
+
 def cone_slope(cone, angle_degrees):
     """m of the chosen cone for a friction (or dilation) angle in degrees."""
     return CONES[cone](jnp.sin(jnp.deg2rad(angle_degrees)))
@@ -266,7 +271,7 @@ class DruckerPragerLaw:
         points (docs/benchmarks.md, 2026-12-04)."""
         constants = self.constants(params)
         trial = elastic_trial_entries(constants, stress, velocity_gradient, dt)
-        once = tensors.materialized if shared_once else (lambda values: values)
+        once = tensors.materialized if shared_once else as_computed
         returned = self.return_state(constants, once(trial), dt, once=once, **(remembered or {}))
         updated = tensors.from_entries(returned["stress"]), {"plastic_strain": state["plastic_strain"] + returned["increment"]}
         return updated, ({"perzyna_root": returned["perzyna_root"]} if self.viscoplastic else {})
@@ -291,11 +296,12 @@ class DruckerPragerLaw:
             constants.update(fluidity=params["fluidity"], exponent=params["exponent"])
         return constants
 
-    def return_state(self, constants, trial, dt, perzyna_root=None, once=lambda values: values):
+    def return_state(self, constants, trial, dt, perzyna_root=None, once=None):
         """The return of the trial entries to the admissible set, with the intermediates its
         adjoint reads: {"stress": 9 entries, "increment": dl, ...} (see the module docstring).
         perzyna_root: the root t of the Perzyna equation, when already solved; once: applied to
-        the intermediates that several outputs read (see `update_remembering`)."""
+        the intermediates that several outputs read (see `update_remembering`; None: as computed)."""
+        once = once or as_computed
         shear, m, dilation_rate = constants["shear"], constants["slope"], constants["dilation_rate"]
         pressure = -(trial[0] + trial[4] + trial[8]) / 3.0
         trial_deviator = tensors.deviator_entries(trial)
