@@ -232,6 +232,19 @@ def test_hand_written_stress_adjoint_under_other_transformations(transform):
     assert_same_trees(results[1], results[0], rtol=1e-10)
 
 
+def test_forward_mode_computes_the_shared_values_once():
+    # Forward mode differentiates the update with shared_once=True: the values every stress
+    # entry's tangent reads (trial, p, q, dl, q'/q, p') pass through `materialized`, which is
+    # a conditional XLA cannot fuse into; the plain forward pass has none of them.
+    _, params, _, hand = update_pair("perzyna")
+    stress, gradient, history = point_states(50)
+    update = lambda young: hand(dict(params, young=young), stress, gradient, history)  # noqa: E731
+    young = params["young"]
+    forward = count_primitive(jax.make_jaxpr(update)(young).jaxpr, "cond")
+    tangent = count_primitive(jax.make_jaxpr(lambda y: jax.jvp(update, (y,), (1e4,))[1])(young).jaxpr, "cond")
+    assert forward == 0 and tangent >= 4
+
+
 @pytest.mark.parametrize("transform", ["grad", "jvp"])
 def test_perzyna_derivatives_read_the_remembered_root(transform):
     # The Newton solve of the Perzyna equation is a while loop. The forward pass solves it once;
