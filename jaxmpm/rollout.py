@@ -5,10 +5,12 @@ by `Checkpointing`; see its docstring.
 """
 
 import dataclasses
+import functools
 import math
 
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
 
 STORE_BUDGET_BYTES = 256 * 1024**2   # "auto" keeps a segment's step intermediates up to this size
@@ -118,6 +120,47 @@ class Checkpointing:
 def scan_steps(advance, state, length):
     """Run `advance(state) -> (state, output)` `length` times; outputs stacked on axis 0."""
     return jax.lax.scan(lambda carry, _: advance(carry), state, None, length=length)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
+def tangents_instantiated(values, anchors, where):
+    """`values` (a tuple of arrays) unchanged. Differentiated, each array whose entry of
+    `where` is True has a tangent, zero or not: a zero selected against an entry of the first
+    tangent of `values` or `anchors` (a tuple of arrays) that is not a symbolic zero (JAX
+    linearizes a tangent that depends on no input tangent to a symbolic zero)."""
+    return values
+
+
+def _tangents_instantiated_jvp(where, primals, tangents):
+    (values, _), (value_tangents, anchor_tangents) = primals, tangents
+    live = [t for t in value_tangents + anchor_tangents if not isinstance(t, SymbolicZero)]
+    if not live:
+        return values, value_tangents
+    entry = jnp.ravel(live[0])[0]
+    zero = jnp.where(True, jnp.zeros_like(entry), entry)   # not 0 x entry: NaN stays out
+    return values, tuple(jnp.full_like(value, zero) if changes and isinstance(tangent, SymbolicZero) else tangent
+                         for value, tangent, changes in zip(values, value_tangents, where))
+
+
+tangents_instantiated.defjvp(_tangents_instantiated_jvp, symbolic_zeros=True)
+
+
+def with_evolving_tangents(state, evolving, anchors=()):
+    """`state`, whose floating-point leaves marked True in `evolving` (a pytree of bools like
+    it) carry a tangent whenever the state or `anchors` (what the rollout differentiates with
+    respect to, e.g. the parameters) carry one.
+
+    JAX differentiates a scan by finding which leaves of its carry have a tangent: it
+    differentiates the step with the initial state's pattern, and again whenever a step
+    turns a zero tangent into a nonzero one. A rollout differentiated with respect to
+    material parameters starts with zero tangents on the positions, velocities and
+    histories, and its first step makes them nonzero: JAX differentiated the whole step
+    twice. Marking the leaves that the step changes lets it do so once."""
+    leaves, tree = jax.tree_util.tree_flatten(state)
+    where = tuple(bool(flag) and jnp.issubdtype(leaf.dtype, jnp.inexact)
+                  for flag, leaf in zip(tree.flatten_up_to(evolving), leaves))
+    anchors = tuple(leaf for leaf in jax.tree_util.tree_leaves(anchors) if jnp.issubdtype(leaf.dtype, jnp.inexact))
+    return tree.unflatten(tangents_instantiated(tuple(leaves), anchors, where))
 
 
 def checkpointed_rollout(advance, state, steps, checkpointing):

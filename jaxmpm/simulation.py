@@ -31,10 +31,10 @@ from jaxmpm.parameters import scene_parameters
 from jaxmpm.probes import make_probes
 from jaxmpm.output import RunFile, deferred_interrupts
 from jaxmpm.results import FileSnapshots, Result
-from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps
+from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps, with_evolving_tangents
 from jaxmpm.scene import Scene, body_speed
 from jaxmpm.seeding import padded, seed_bodies
-from jaxmpm.solver import BodyBlock, Structure, make_step
+from jaxmpm.solver import BodyBlock, Structure, evolving_leaves, make_step
 from jaxmpm.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
 
 
@@ -292,6 +292,7 @@ class Simulation:
         advance = self._advance_and_observe(params, initial.particles.x)
         checkpointing = self.checkpointing.resolved(self.steps, initial.particles.x.shape[0],
                                                     self.structure.layout.shape.support, initial.particles.x.dtype.itemsize)
+        initial = with_evolving_tangents(initial, evolving_leaves(self.structure, initial), params)
         final, histories = checkpointed_rollout(advance, initial, self.steps, checkpointing)
         first = self.observe_start(initial)
         probes = {name: jnp.concatenate([first[name][None], histories[name]]) for name in first}

@@ -500,6 +500,24 @@ def contact_forces(structure, impulses, dt):
     }
 
 
+def evolving_leaves(structure, state):
+    """Which leaves of `state` a step changes by amounts that depend on the parameters: a
+    pytree of bools like it (`rollout.with_evolving_tangents`). Masses and error counters do
+    not change; the affine velocities only with APIC; a body's history only when the body is
+    free and its law updates it."""
+    def marked(tree, flag):
+        return jax.tree_util.tree_map(lambda _: flag, tree)
+
+    particles = state.particles
+    histories = tuple(marked(history, block.kinematics == "free" and not getattr(block.law, "keeps_history", False))
+                      for block, history in zip(structure.bodies, particles.history))
+    return state.replace(
+        particles=particles.replace(x=True, v=True, affine=structure.transfer == "apic", stress=True, volume=True,
+                                    mass=False, history=histories, flags=False),
+        rigid=marked(state.rigid, True), step=False, error_step=False, error_point=False,
+    )
+
+
 def make_step(structure: Structure):
     """The pure step function of a scene: step(params, state) -> (state, diagnostics)."""
     layout, dt = structure.layout, structure.dt

@@ -5,6 +5,7 @@ in float64 with a relative step of about 1e-6 of the parameter.
 """
 
 import functools
+import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -13,6 +14,8 @@ import pytest
 
 import jaxmpm
 from tests.scenes import BLOCK
+
+EXAMPLES = pathlib.Path(__file__).resolve().parents[1] / "examples"
 
 
 @functools.lru_cache
@@ -93,6 +96,35 @@ def test_vmap_over_parameters_matches_single_runs():
     batched = jax.vmap(lambda young: settlement_measure(sim, jaxmpm.with_values(sim.params, {"soil.young": young})))(youngs)
     singles = [settlement_measure(sim, jaxmpm.with_values(sim.params, {"soil.young": y})) for y in youngs]
     np.testing.assert_allclose(batched, singles, rtol=1e-12)
+
+
+@pytest.mark.parametrize("mode", ["reverse", "forward"])
+def test_derivatives_differentiate_the_step_once(mode, monkeypatch):
+    # JAX finds which leaves of a scan's carry have tangents by differentiating the step, and
+    # again whenever a step gives a new leaf one (positions, velocities, histories: all zero
+    # at t = 0 with respect to a material parameter). The rollout marks the leaves the step
+    # changes (solver.evolving_leaves), so once is enough: on the wall twin (two sand bodies,
+    # a rigid wall, two contact pairs, checkpointed segments) the stress update's tangent
+    # (`shared_once`) is traced once per sand body. Without the marks, twice.
+    from jaxmpm.materials.drucker_prager import DruckerPragerLaw
+
+    tangents = []
+    update = DruckerPragerLaw.update_remembering
+
+    def counting(self, *args, shared_once=False, **kwargs):
+        tangents.extend([self] if shared_once else [])
+        return update(self, *args, shared_once=shared_once, **kwargs)
+
+    monkeypatch.setattr(DruckerPragerLaw, "update_remembering", counting)
+    sim = jaxmpm.Simulation(jaxmpm.load_scene(EXAMPLES / "calibrate_wall_scene.toml"))
+
+    def misfit(friction):
+        probes = sim.probes(jaxmpm.with_values(sim.params, {"sand.friction_angle": friction}))
+        return sum(jnp.sum(history) for history in probes.values())
+
+    derivative = jax.grad(misfit) if mode == "reverse" else (lambda friction: jax.jvp(misfit, (friction,), (1.0,)))
+    jax.make_jaxpr(derivative)(30.0)
+    assert len(tangents) == 2
 
 
 @pytest.fixture(scope="module")
