@@ -53,6 +53,7 @@ from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.parameters import resolve
 from jaxmpm.files import atomic_path
 from jaxmpm.simulation import STEP_SLACK, describe_failure
+from jaxmpm.tracing import collector_paused
 from jaxmpm.xla_options import jit_reverse_mode
 
 OPTIMIZERS = ("lm", "lbfgs", "adam")
@@ -377,13 +378,15 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
     z0 = place(z0)
     fingerprint = _fingerprint(experiments, space, optimizer, learning_rate, start_values, data)
     started = clock.monotonic()
-    state_shape = jax.eval_shape(problem.start, z0, data, bases)
+    with collector_paused():        # the first call of each program traces it (jaxmpm.tracing)
+        state_shape = jax.eval_shape(problem.start, z0, data, bases)
     treedef = jax.tree_util.tree_structure(state_shape)
     if resume and checkpoint is not None and Path(checkpoint).exists():
         run = load_checkpoint(checkpoint, fingerprint)
         state = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(leaf) for leaf in run.opt_leaves])
     else:
-        state = jax.block_until_ready(problem.start(z0, data, bases))     # one sharded program in flight
+        with collector_paused():
+            state = jax.block_until_ready(problem.start(z0, data, bases))     # one sharded program in flight
         run = Progress(0, np.asarray(z0), np.full(count, np.inf), np.zeros(count, bool), [""] * count,
                        [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(state)], [], [], [], [], [], [],
                        count * len(experiments) if optimizer in ("lm", "lbfgs") else 0, np.array(z0), np.full(count, np.inf))
@@ -394,7 +397,8 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
         while run.iteration < max_iterations and not run.done.all():
             tick = clock.monotonic()
             moved = np.asarray(state.accepted) if optimizer == "lm" else np.ones(count, bool)
-            new_z, new_state, value, gradient_norm = problem.iterate(z, state, data, bases)
+            with collector_paused():
+                new_z, new_state, value, gradient_norm = problem.iterate(z, state, data, bases)
             value, gradient_norm = np.asarray(value), np.asarray(gradient_norm)
             running = ~run.done
             run.evaluations += int(np.sum(running)) * len(experiments) * (1 + _linesearch_steps(new_state, optimizer))
@@ -463,8 +467,9 @@ def _finish(experiments, groups, space, problem, data, bases, run, state, start_
         last_losses = 0.5 * np.sum(np.asarray(state.residuals) ** 2, axis=1) / count
         passed_losses = np.asarray(run.best_loss)
     else:
-        last_losses = np.asarray(problem.losses(last_z, data, bases))
-        passed_losses = np.asarray(problem.losses(best_z, data, bases))
+        with collector_paused():
+            last_losses = np.asarray(problem.losses(last_z, data, bases))
+            passed_losses = np.asarray(problem.losses(best_z, data, bases))
     at_best = np.all(np.asarray(run.best_z) == np.asarray(run.z), axis=1)    # the same point: no rounding decides
     take_last = np.isfinite(last_losses) & (at_best | ~(passed_losses < last_losses))
     final_z = jnp.where(jnp.asarray(take_last)[:, None], last_z, best_z)
@@ -476,7 +481,8 @@ def _finish(experiments, groups, space, problem, data, bases, run, state, start_
     if optimizer == "lm" and take_last[best]:
         linearization = physical_linearization(space, final_z[best], state.residuals[best], state.jacobian[best])
     else:
-        linearization = problem.linearization(jnp.asarray(values, dtype), data, bases)
+        with collector_paused():
+            linearization = problem.linearization(jnp.asarray(values, dtype), data, bases)
     covariance, jacobian = gauss_newton(
         problem.residuals, values, noise_known=all(e.observations.noise_known for e in experiments),
         linearization=linearization,

@@ -19,6 +19,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxmpm.errors import SceneError
+from jaxmpm.tracing import collector_paused
 
 
 def stack(param_sets) -> dict:
@@ -77,7 +78,8 @@ def ensemble(sim, params_batch, devices=None) -> dict:
     if key not in sim.compiled_cache:
         member = lambda params: sim._probes(params, sim.initial_state(params))[0]  # noqa: E731
         sim.compiled_cache[key] = jax.jit(jax.vmap(member), out_shardings=sharding)
-    probes = sim.compiled_cache[key](batch)
+    with collector_paused():
+        probes = sim.compiled_cache[key](batch)
     if padded == count:
         return probes                   # sharded over the devices as computed
     return {name: values[:count] for name, values in probes.items()}

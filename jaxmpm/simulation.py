@@ -36,6 +36,7 @@ from jaxmpm.scene import Scene, body_speed
 from jaxmpm.seeding import padded, seed_bodies
 from jaxmpm.solver import BodyBlock, Structure, evolving_leaves, make_step
 from jaxmpm.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
+from jaxmpm.tracing import collector_paused
 
 
 STEP_SLACK = 1e-6   # relative round-off allowed between the scene's dt and the stable limit
@@ -318,14 +319,16 @@ class Simulation:
         params = self.cast(self.params if params is None else params)
         self.check_time_step(params, initial)
         initial = self.initial_state(params) if initial is None else initial
-        return self._probes(params, initial)[0]
+        with collector_paused():
+            return self._probes(params, initial)[0]
 
     def final_state(self, params=None, initial: State | None = None) -> State:
         """The state after the last step (differentiable, like `probes`)."""
         params = self.cast(self.params if params is None else params)
         self.check_time_step(params, initial)
         initial = self.initial_state(params) if initial is None else initial
-        return self._probes(params, initial)[1]
+        with collector_paused():
+            return self._probes(params, initial)[1]
 
     # ------------------------------------------------------------------ forward runs
 
@@ -372,7 +375,8 @@ class Simulation:
         with deferred_interrupts() as stop:
             try:
                 for output in range(done, self.outputs):
-                    state, values = self._advance(params, state, initial_x)
+                    with collector_paused():
+                        state, values = self._advance(params, state, initial_x)
                     error_step = int(state.error_step)
                     if error_step >= 0:
                         keep = error_step - output * self.steps_per_output - 1
