@@ -5,6 +5,7 @@ in float64 with a relative step of about 1e-6 of the parameter.
 """
 
 import functools
+import gc
 import pathlib
 
 import jax
@@ -125,6 +126,32 @@ def test_derivatives_differentiate_the_step_once(mode, monkeypatch):
     derivative = jax.grad(misfit) if mode == "reverse" else (lambda friction: jax.jvp(misfit, (friction,), (1.0,)))
     jax.make_jaxpr(derivative)(30.0)
     assert len(tangents) == 2
+
+
+def test_programs_are_traced_with_the_garbage_collector_paused():
+    # jaxmpm.tracing: Python's cyclic collector is paused while jaxmpm traces its programs
+    # (a fifth of a gradient's tracing and lowering went to its collections), and left as it
+    # was after, also when the call fails.
+    from jaxmpm.tracing import collector_paused
+
+    sim = small_simulation()
+    collecting = []
+    step = sim.step
+    sim.step = lambda params, state: collecting.append(gc.isenabled()) or step(params, state)
+    sim.probes()
+    assert collecting == [False] and gc.isenabled()
+
+    gc.disable()
+    try:
+        with collector_paused():
+            pass
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
+    with pytest.raises(ZeroDivisionError):
+        with collector_paused():
+            1 / 0
+    assert gc.isenabled()
 
 
 @pytest.fixture(scope="module")
