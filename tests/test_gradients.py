@@ -106,26 +106,53 @@ def test_derivatives_differentiate_the_step_once(mode, monkeypatch):
     # at t = 0 with respect to a material parameter). The rollout marks the leaves the step
     # changes (solver.evolving_leaves), so once is enough: on the wall twin (two sand bodies,
     # a rigid wall, two contact pairs, checkpointed segments) the stress update's tangent
-    # (`shared_once`) is traced once per sand body. Without the marks, twice.
-    from jaxmpm.materials.drucker_prager import DruckerPragerLaw
+    # (`shared_once`) is asked for once per sand body. Without the marks, twice.
+    from jaxmpm.materials import base
 
     tangents = []
-    update = DruckerPragerLaw.update_remembering
+    traced_once = base.traced_once
 
-    def counting(self, *args, shared_once=False, **kwargs):
-        tangents.extend([self] if shared_once else [])
-        return update(self, *args, shared_once=shared_once, **kwargs)
+    def counting(law, dt, name, **options):
+        tangents.extend([law] if options.get("shared_once") else [])
+        return traced_once(law, dt, name, **options)
 
-    monkeypatch.setattr(DruckerPragerLaw, "update_remembering", counting)
+    monkeypatch.setattr(base, "traced_once", counting)
+    jax.make_jaxpr(wall_twin_derivative(mode))(30.0)
+    assert len(tangents) == 2
+
+
+def wall_twin_derivative(mode):
+    """d/d(friction angle) of the summed probe histories of the wall twin example: `jax.grad`
+    ("reverse") or `jax.jvp` ("forward")."""
     sim = jaxmpm.Simulation(jaxmpm.load_scene(EXAMPLES / "calibrate_wall_scene.toml"))
 
     def misfit(friction):
         probes = sim.probes(jaxmpm.with_values(sim.params, {"sand.friction_angle": friction}))
         return sum(jnp.sum(history) for history in probes.values())
 
-    derivative = jax.grad(misfit) if mode == "reverse" else (lambda friction: jax.jvp(misfit, (friction,), (1.0,)))
-    jax.make_jaxpr(derivative)(30.0)
-    assert len(tangents) == 2
+    return jax.grad(misfit) if mode == "reverse" else (lambda friction: jax.jvp(misfit, (friction,), (1.0,)))
+
+
+def test_a_gradient_traces_the_stress_update_once_per_kind_of_pass(monkeypatch):
+    # materials.base.traced_once: the one-point update is jitted and kept, so its traces are
+    # shared between bodies and passes. A gradient of the wall twin traced it six times (two
+    # sand bodies x the forward pass, the derivative's recomputation of it, the tangent); now
+    # the tangent once for both bodies, and the forward pass once or twice (JAX keys its
+    # trace cache on the context too).
+    from jaxmpm.materials import base
+    from jaxmpm.materials.drucker_prager import DruckerPragerLaw
+
+    traces = []
+    update = DruckerPragerLaw.update_remembering
+
+    def counting(self, *args, **kwargs):
+        traces.append(kwargs.get("shared_once"))
+        return update(self, *args, **kwargs)
+
+    monkeypatch.setattr(DruckerPragerLaw, "update_remembering", counting)
+    base.traced_once.cache_clear()          # traces of other tests kept in it
+    jax.make_jaxpr(wall_twin_derivative("reverse"))(30.0)
+    assert traces.count(True) == 1 and traces.count(False) <= 2
 
 
 def test_programs_are_traced_with_the_garbage_collector_paused():
