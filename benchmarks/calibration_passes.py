@@ -49,6 +49,7 @@ def measure(path: Path, repeats: int) -> dict:
 
     import jaxmpm
     from inverse.levenberg_marquardt import residuals_and_jacobian
+    from jaxmpm.tracing import collector_paused
     from jaxmpm.xla_options import jit_reverse_mode
 
     scene = jaxmpm.load_scene(path)
@@ -70,7 +71,8 @@ def measure(path: Path, repeats: int) -> dict:
     result = {"scene": path.name, "points": sim.point_count, "steps": sim.steps, "parameters": len(names)}
     for name, program in programs.items():
         start = time.perf_counter()
-        jax.block_until_ready(program(z))
+        with collector_paused():        # as a calibration calls its programs
+            jax.block_until_ready(program(z))
         first = time.perf_counter() - start
         runs = []
         for _ in range(repeats):

@@ -9,7 +9,8 @@ the program `Simulation.probes` builds (the whole rollout, checkpointed as jaxmp
 the scene), and the gradient of a misfit of its probe histories with respect to every
 material parameter, compiled as jaxmpm compiles its reverse-mode work
 (`jit_reverse_mode`). Scenes without probes get a probe of the mean displacement of their
-first body. Trace (Python tracing and lowering to XLA) and XLA compilation are timed apart.
+first body. Trace (Python tracing and lowering to XLA, with Python's garbage collector paused as
+jaxmpm pauses it for its own programs: `jaxmpm.tracing`) and XLA compilation are timed apart.
 Each scene runs in a fresh process (nothing cached in memory; JAX's persistent compilation
 cache off), float64 as the scenes' own dtype asks (JAX's 64-bit mode on).
 """
@@ -52,6 +53,7 @@ def measure(path: Path) -> dict:
     import jax.numpy as jnp
 
     import jaxmpm
+    from jaxmpm.tracing import collector_paused
     from jaxmpm.xla_options import jit_reverse_mode
 
     scene = jaxmpm.load_scene(path)
@@ -70,8 +72,9 @@ def measure(path: Path) -> dict:
     result = {"scene": path.name, "points": sim.point_count, "steps": sim.steps, "dtype": str(sim.dtype),
               "segment": chosen.segment_length(sim.steps), "kept": chosen.step}
     for name, program in (("forward", jax.jit(misfit)), ("gradient", jit_reverse_mode(jax.grad(misfit)))):
-        lowered, trace_s = timed(lambda: program.trace(materials).lower())
-        _, compile_s = timed(lowered.compile)
+        with collector_paused():        # as a calibration traces its programs
+            lowered, trace_s = timed(lambda: program.trace(materials).lower())
+            _, compile_s = timed(lowered.compile)
         result[f"{name}_trace_s"], result[f"{name}_compile_s"] = trace_s, compile_s
     return result
 
@@ -129,7 +132,8 @@ def section(results: list[dict]) -> str:
         "The forward program is the scene's whole probe rollout (`Simulation.probes`); the gradient is that of the "
         "sum of squares of its probe histories with respect to every material parameter, as a calibration compiles "
         "it. Segment: the checkpoint segment jaxmpm chose (whole: one segment, the rollout's kept values fit the "
-        "memory budget). Trace is Python tracing and lowering, compile is XLA. A calibration or a `jaxmpm run` "
+        "memory budget). Trace is Python tracing and lowering (Python's garbage collector paused, as jaxmpm does "
+        "for its own programs), compile is XLA. A calibration or a `jaxmpm run` "
         "with the persistent cache on (the CLI default) pays this once per scene structure.",
     ])
 
