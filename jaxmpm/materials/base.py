@@ -66,7 +66,7 @@ class Material:
         return self.law.wave_speed(params)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.lru_cache(maxsize=64)      # bounded: a sweep over time steps keeps only the last ones
 def traced_once(law, dt, name, **options):
     """The one-point `law.<name>` at time step dt (dt left out of its arguments), jitted and
     kept: JAX traces it once per argument shapes, for every body of the law and every pass
