@@ -69,15 +69,33 @@ def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate,
     trial_overstress f* > 0; hardening H; pressure_trial p* > 0; dilation_rate K m_psi;
     m the cone slope; rate = gamma dt; exponent N. Value from bracketed Newton steps on
     t = logit(x) (`perzyna_root_of`; or `root`, that t already solved: the reverse mode reads the
-    forward pass's), gradient from the implicit function theorem.
+    forward pass's), derivatives from the implicit function theorem (`fraction_at_root`).
     """
     arguments = (trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent)
     root = jax.lax.stop_gradient(perzyna_root_of(*arguments) if root is None else root)
+    return fraction_at_root(root, *arguments)
+
+
+@jax.custom_jvp
+def fraction_at_root(root, *arguments):
+    """x = sigmoid(t) at the root t of the Perzyna equation with these `arguments`; derivatives
+    (of every order) those of `fraction_by_implicit_function`. Undifferentiated, the residual
+    and its slope at the root are not computed (a forward pass spent 7 % of a viscoplastic
+    step on them; docs/benchmarks.md, 2026-12-04)."""
+    return jax.nn.sigmoid(root)
+
+
+def fraction_by_implicit_function(root, *arguments):
+    """sigmoid(t - (R(t) - R(t)) / (dR/dt)) at the root t: the value sigmoid(t), the derivative
+    with respect to the arguments -(dR/dtheta) / (dR/dt) by the implicit function theorem,
+    with the root and the slope held."""
     residual = perzyna_equation(*arguments)["residual"]
-    # Implicit function theorem: dt/dtheta = -(dR/dtheta) / (dR/dt) at the root.
     slope = jax.lax.stop_gradient(jax.grad(residual)(root))
     value = residual(root)
     return jax.nn.sigmoid(root - (value - jax.lax.stop_gradient(value)) / slope)
+
+
+fraction_at_root.defjvp(lambda primals, tangents: jax.jvp(fraction_by_implicit_function, primals, tangents))
 
 
 def perzyna_root_of(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent):
