@@ -80,7 +80,7 @@ def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate,
 def fraction_at_root(root, *arguments):
     """x = sigmoid(t) at the root t of the Perzyna equation with these `arguments`; derivatives
     (of every order) those of `fraction_by_implicit_function`. Undifferentiated, the residual
-    and its slope at the root are not computed (a forward pass spent 7 % of a viscoplastic
+    and its slope at the root are not computed (a forward pass spent ~6 % of a viscoplastic
     step on them; docs/benchmarks.md, 2026-12-04)."""
     return jax.nn.sigmoid(root)
 
