@@ -143,11 +143,6 @@ def deviator_entries(e):
     return [value - mean if index in DIAGONAL else value for index, value in enumerate(e)]
 
 
-def deviator(tensor):
-    """Deviatoric part t - tr(t)/3 I of a (..., 3, 3) tensor."""
-    return from_entries(deviator_entries(entries(tensor)))
-
-
 def von_mises_of_deviator(s):
     """q = sqrt(3/2 s:s) from the 9 entries of a deviator, finite gradient at s = 0."""
     return safe_sqrt(1.5 * sum(value * value for value in s))   # not a reduce
@@ -158,56 +153,74 @@ def von_mises(stress):
     return von_mises_of_deviator(deviator_entries(entries(stress)))
 
 
-def symmetric(tensor):
-    """(t + t^T) / 2: the rate of deformation d from the velocity gradient L."""
-    return 0.5 * (tensor + jnp.swapaxes(tensor, -1, -2))
+def voigt(tensor):
+    """[t_xx, t_yy, t_zz, t_xy] of symmetric (..., 3, 3) tensors without out-of-plane shear
+    (t_xz = t_yz = 0: every stress and rate of deformation of plane strain and axisymmetry),
+    t_xy read as the mean of t_xy and t_yx. The stress updates work on these four values:
+    on the nine entries, five of them zeros or copies, a Drucker-Prager step's reverse
+    mode compiled half again as many kernels (docs/benchmarks.md, 2026-12-04)."""
+    e = entries(tensor)
+    return [e[0], e[4], e[8], 0.5 * (e[1] + e[3])]
 
 
-def hughes_winget_rotation(velocity_gradient, dt):
-    """Incremental rotation Q = (I - dt W/2)^-1 (I + dt W/2) of the in-plane spin W.
+def from_voigt(values):
+    """(..., 3, 3) symmetric tensors from [t_xx, t_yy, t_zz, t_xy] (see `voigt`)."""
+    xx, yy, zz, xy = values
+    zero = jnp.zeros_like(xx)
+    return from_entries([xx, xy, zero, xy, yy, zero, zero, zero, zz])
+
+
+def voigt_cotangent(tensor_bar):
+    """The cotangent of [xx, yy, zz, xy] from that of the tensor `from_voigt` built of them."""
+    e = entries(tensor_bar)
+    return [e[0], e[4], e[8], e[1] + e[3]]
+
+
+def tensor_cotangent(voigt_bar):
+    """The cotangent of the (..., 3, 3) tensor `voigt` read, from those of its four values."""
+    xx, yy, zz, xy = voigt_bar
+    return from_voigt([xx, yy, zz, 0.5 * xy])
+
+
+def voigt_deviator(v):
+    """[s_xx, s_yy, s_zz, s_xy] of the deviator of [t_xx, t_yy, t_zz, t_xy]; the map is its
+    own transpose."""
+    mean = (v[0] + v[1] + v[2]) / 3.0
+    return [v[0] - mean, v[1] - mean, v[2] - mean, v[3]]
+
+
+def voigt_von_mises_of_deviator(s):
+    """q = sqrt(3/2 s:s) of a deviator [s_xx, s_yy, s_zz, s_xy] (s_xy counted twice in s:s),
+    finite gradient at s = 0."""
+    return safe_sqrt(1.5 * (s[0] * s[0] + s[1] * s[1] + s[2] * s[2] + 2.0 * s[3] * s[3]))
+
+
+def rotate_voigt(v, cos, sin):
+    """[xx, yy, zz, xy] of Q t Q^T, Q the rotation by (cos, sin) about z."""
+    xx, yy, zz, xy = v
+    cc, ss, cs = cos * cos, sin * sin, cos * sin
+    return [cc * xx + ss * yy - 2.0 * cs * xy, ss * xx + cc * yy + 2.0 * cs * xy, zz, cs * (xx - yy) + (cc - ss) * xy]
+
+
+def rotate_voigt_adjoint(v_bar, cos, sin):
+    """The transpose of `rotate_voigt`'s linear map on [xx, yy, zz, xy] (not the rotation
+    by -sin: xy is one value, not two entries)."""
+    b_xx, b_yy, b_zz, b_xy = v_bar
+    cc, ss, cs = cos * cos, sin * sin, cos * sin
+    return [cc * b_xx + ss * b_yy + cs * b_xy, ss * b_xx + cc * b_yy - cs * b_xy, b_zz,
+            2.0 * cs * (b_yy - b_xx) + (cc - ss) * b_xy]
+
+
+def in_plane_rotation(velocity_gradient, dt):
+    """(cos, sin) of the Hughes-Winget incremental rotation Q = (I - dt W/2)^-1 (I + dt W/2) of
+    the spin W of (..., 3, 3) velocity gradients (Hughes & Winget 1980).
 
     In plane strain and axisymmetry the spin has only its in-plane (x, y) part, so Q is a
     rotation by 2 atan(a) about z with a = dt (L_yx - L_xy) / 4; written in closed form,
     Q is exactly orthogonal, so stress invariants are preserved to round-off under rigid
-    rotation (Hughes & Winget 1980). Returns a 3x3 matrix.
-    """
-    a = 0.25 * dt * (velocity_gradient[1, 0] - velocity_gradient[0, 1])
-    scale = 1.0 / (1.0 + a * a)
-    cos, sin = (1.0 - a * a) * scale, 2.0 * a * scale
-    one, zero = jnp.ones_like(a), jnp.zeros_like(a)
-    return jnp.stack(
-        [jnp.stack([cos, -sin, zero]), jnp.stack([sin, cos, zero]), jnp.stack([zero, zero, one])]
-    )
-
-
-def in_plane_rotation(velocity_gradient, dt):
-    """(cos, sin) of the Hughes-Winget incremental rotation about z (see
-    hughes_winget_rotation) of (..., 3, 3) velocity gradients."""
+    rotation. Q sigma Q^T (`rotate_voigt`) integrates the spin part of the paper's Jaumann
+    rate, sigma_dot = sigma_jaumann + sigma omega + (sigma omega)^T."""
     e = entries(velocity_gradient)
     a = 0.25 * dt * (e[3] - e[1])
     scale = 1.0 / (1.0 + a * a)
     return (1.0 - a * a) * scale, 2.0 * a * scale
-
-
-def rotate_entries(e, cos, sin):
-    """Entries of Q t Q^T for Q the rotation by (cos, sin) about z, t given by its 9 entries."""
-    rows = [
-        [cos * e[0] - sin * e[3], cos * e[1] - sin * e[4], cos * e[2] - sin * e[5]],
-        [sin * e[0] + cos * e[3], sin * e[1] + cos * e[4], sin * e[2] + cos * e[5]],
-        [e[6], e[7], e[8]],
-    ]
-    return [value for row in (
-        [cos * r[0] - sin * r[1], sin * r[0] + cos * r[1], r[2]] for r in rows
-    ) for value in row]
-
-
-def jaumann_rotate(stress, velocity_gradient, dt):
-    """Carry sigma through the step's rigid rotation: Q sigma Q^T (objective Jaumann update).
-
-    Integrates the spin part of the Jaumann rate of the paper,
-    sigma_dot = sigma_jaumann + sigma omega + (sigma omega)^T, omega_ij = (v_j,i - v_i,j)/2.
-    Q is a rotation about z (hughes_winget_rotation), written out on the entries: reverse mode
-    of the matrix products was slow on XLA:CPU without its YNNPACK kernels.
-    """
-    cos, sin = in_plane_rotation(velocity_gradient, dt)
-    return from_entries(rotate_entries(entries(stress), cos, sin))

@@ -40,7 +40,7 @@ from jaxmpm import tensors
 from jaxmpm.errors import SceneError
 from jaxmpm.keys import Key, is_concrete
 from jaxmpm.materials.base import ELASTIC_KEYS, Material, check_keys
-from jaxmpm.materials.linear_elastic import elastic_moduli, elastic_trial_adjoint, elastic_trial_entries, p_wave_speed
+from jaxmpm.materials.linear_elastic import elastic_moduli, elastic_trial_adjoint, elastic_trial_voigt, p_wave_speed
 
 CONES = {
     # m as a function of sin(angle); each matches Mohr-Coulomb in one stress state.
@@ -288,21 +288,16 @@ class DruckerPragerLaw:
         ran 10-28 % faster so; the forward pass keeps XLA's own choice, 5-9 % faster at 16k
         points (docs/benchmarks.md, 2026-12-04)."""
         constants = self.constants(params)
-        trial = elastic_trial_entries(constants, stress, velocity_gradient, dt)
+        trial = elastic_trial_voigt(constants, stress, velocity_gradient, dt)
         once = tensors.materialized if shared_once else as_computed
         returned = self.return_state(constants, once(trial), dt, once=once, **(remembered or {}))
-        updated = tensors.from_entries(returned["stress"]), {"plastic_strain": state["plastic_strain"] + returned["increment"]}
+        updated = tensors.from_voigt(returned["stress"]), {"plastic_strain": state["plastic_strain"] + returned["increment"]}
         return updated, ({"perzyna_root": returned["perzyna_root"]} if self.viscoplastic else {})
 
     def correct(self, params, trial, dt):
         """Return the trial stress to the admissible set: (stress, plastic multiplier dl)."""
-        stress, increment = self.correct_entries(params, tensors.entries(trial), dt)
-        return tensors.from_entries(stress), increment
-
-    def correct_entries(self, params, trial, dt):
-        """`correct` on and to the 9 entries of the stress."""
-        state = self.return_state(self.constants(params), trial, dt)
-        return state["stress"], state["increment"]
+        state = self.return_state(self.constants(params), tensors.voigt(trial), dt)
+        return tensors.from_voigt(state["stress"]), state["increment"]
 
     def constants(self, params):
         """The scalars the return reads (K, G, m, K m_psi, and gamma, N when viscoplastic):
@@ -315,15 +310,16 @@ class DruckerPragerLaw:
         return constants
 
     def return_state(self, constants, trial, dt, perzyna_root=None, once=None):
-        """The return of the trial entries to the admissible set, with the intermediates its
-        adjoint reads: {"stress": 9 entries, "increment": dl, ...} (see the module docstring).
+        """The return of the trial stress [xx, yy, zz, xy] (`tensors.voigt`) to the admissible
+        set, with the intermediates its adjoint reads: {"stress": [xx, yy, zz, xy], "increment":
+        dl, ...} (see the module docstring).
         perzyna_root: the root t of the Perzyna equation, when already solved; once: applied to
         the intermediates that several outputs read (see `update_remembering`; None: as computed)."""
         once = once or as_computed
         shear, m, dilation_rate = constants["shear"], constants["slope"], constants["dilation_rate"]
-        pressure = -(trial[0] + trial[4] + trial[8]) / 3.0
-        trial_deviator = tensors.deviator_entries(trial)
-        pressure, deviatoric = once((pressure, tensors.von_mises_of_deviator(trial_deviator)))
+        pressure = -(trial[0] + trial[1] + trial[2]) / 3.0
+        trial_deviator = tensors.voigt_deviator(trial)
+        pressure, deviatoric = once((pressure, tensors.voigt_von_mises_of_deviator(trial_deviator)))
         overstress = deviatoric - m * pressure
         hardening = 3.0 * shear + m * dilation_rate
 
@@ -346,8 +342,7 @@ class DruckerPragerLaw:
         new_deviatoric = safe_deviatoric - 3.0 * shear * multiplier
         new_pressure = safe_pressure + dilation_rate * multiplier
         ratio, new_pressure = once((new_deviatoric / safe_deviatoric, new_pressure))
-        returned = [value * ratio - (new_pressure if index in tensors.DIAGONAL else 0.0)
-                    for index, value in enumerate(trial_deviator)]
+        returned = [value * ratio - (new_pressure if index < 3 else 0.0) for index, value in enumerate(trial_deviator)]
         stress = [jnp.where(to_cone, r, jnp.where(to_apex, jnp.zeros_like(t), t)) for r, t in zip(returned, trial)]
         apex_multiplier = deviatoric / (3.0 * shear)
         increment = jnp.where(to_cone, multiplier, jnp.where(to_apex, apex_multiplier, 0.0))
@@ -363,21 +358,22 @@ class DruckerPragerLaw:
         dl = x f/H, f = q - m p, H = 3 G + m K m_psi; x = 1, or the Perzyna fraction, whose
         cotangents come from its own implicit-function VJP at the remembered root), sigma = 0 at the apex
         (dl = q / 3G), sigma = trial when elastic; then q = sqrt(3/2 s:s), s = dev(t), and the
-        elastic trial (elastic_trial_adjoint)."""
+        elastic trial (elastic_trial_adjoint); on the four values of `tensors.voigt` (s:s counts
+        s_xy twice)."""
         shear, m, dilation_rate = constants["shear"], constants["slope"], constants["dilation_rate"]
-        trial = elastic_trial_entries(constants, stress, velocity_gradient, dt)
+        trial = elastic_trial_voigt(constants, stress, velocity_gradient, dt)
         # computed once: every kernel of the adjoint re-derived the trial from sigma and L
         # (gradients 3-7 % faster, docs/benchmarks.md, 2026-12-04)
         trial = tensors.materialized(trial)
         r = self.return_state(constants, trial, dt, **remembered)
         cone, apex = r["to_cone"], r["to_apex"]
         zero = jnp.zeros_like(r["pressure"])
-        out_bar = tensors.entries(stress_bar)
+        out_bar = tensors.voigt_cotangent(stress_bar)
         increment_bar = state_bar["plastic_strain"]
 
         on_cone = [jnp.where(cone, value, zero) for value in out_bar]
         ratio_bar = sum(b * s for b, s in zip(on_cone, r["deviator"]))
-        new_pressure_bar = -(on_cone[0] + on_cone[4] + on_cone[8])
+        new_pressure_bar = -(on_cone[0] + on_cone[1] + on_cone[2])
         new_deviatoric_bar = ratio_bar / r["safe_deviatoric"]
         safe_deviatoric_bar = new_deviatoric_bar - ratio_bar * r["ratio"] / r["safe_deviatoric"]
         multiplier_bar = jnp.where(cone, increment_bar, zero) - 3.0 * shear * new_deviatoric_bar + dilation_rate * new_pressure_bar
@@ -415,15 +411,16 @@ class DruckerPragerLaw:
         # q = sqrt(3/2 s:s) (gradient 0 at q = 0, as safe_sqrt), s = dev(t), p = -tr(t)/3
         positive = r["deviatoric"] > 0.0
         slope_q = jnp.where(positive, 1.5 * deviatoric_bar / jnp.where(positive, r["deviatoric"], 1.0), zero)
-        deviator_bar = [jnp.where(cone, r["ratio"], zero) * b + slope_q * s for b, s in zip(on_cone, r["deviator"])]
+        deviator_bar = [jnp.where(cone, r["ratio"], zero) * b + slope_q * s * (2.0 if index == 3 else 1.0)
+                        for index, (b, s) in enumerate(zip(on_cone, r["deviator"]))]
         elastic = ~(cone | apex)
         mean_bar = -pressure_bar / 3.0
-        trial_bar = [b + (mean_bar if index in tensors.DIAGONAL else 0.0) + jnp.where(elastic, o, zero)
-                     for index, (b, o) in enumerate(zip(tensors.deviator_entries(deviator_bar), out_bar))]
-        # computed once: each entry of the adjoint's outputs re-derived all nine (gradients 2-4 %
+        trial_bar = [b + (mean_bar if index < 3 else 0.0) + jnp.where(elastic, o, zero)
+                     for index, (b, o) in enumerate(zip(tensors.voigt_deviator(deviator_bar), out_bar))]
+        # computed once: each entry of the adjoint's outputs re-derived all of them (gradients 2-4 %
         # faster, docs/benchmarks.md, 2026-12-04)
         trial_bar = tensors.materialized(trial_bar)
         moduli_bar, stress_bar, gradient_bar = elastic_trial_adjoint(constants, stress, velocity_gradient, dt, trial_bar)
         bars["bulk"] = moduli_bar["bulk"]
         bars["shear"] = bars["shear"] + moduli_bar["shear"]
-        return bars, tensors.from_entries(stress_bar), tensors.from_entries(gradient_bar), state_bar
+        return bars, stress_bar, gradient_bar, state_bar

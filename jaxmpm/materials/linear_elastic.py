@@ -24,83 +24,76 @@ def elastic_moduli(params):
     return {"bulk": bulk, "shear": shear}
 
 
-def symmetric_entries(e):
-    """Entries of (t + t^T) / 2 from the 9 entries of t (d = sym(L); also its own adjoint)."""
-    return [0.5 * (e[3 * i + j] + e[3 * j + i]) for i in range(3) for j in range(3)]
+def rate_of_deformation(velocity_gradient):
+    """d = sym(L) as [d_xx, d_yy, d_zz, d_xy] (`tensors.voigt`) of (..., 3, 3) velocity gradients."""
+    return tensors.voigt(velocity_gradient)
 
 
-def elastic_increment_entries(moduli, velocity_gradient, dt):
-    """Entries of dt (K tr(d) I + 2 G dev(d)), d = sym(L), from the 9 entries of L [Pa];
-    moduli = elastic_moduli(params)."""
+def elastic_increment_voigt(moduli, rate, dt):
+    """dt (K tr(d) I + 2 G dev(d)) as [xx, yy, zz, xy] from d = [d_xx, d_yy, d_zz, d_xy] [Pa];
+    moduli = elastic_moduli(params). The map is its own transpose."""
     bulk, shear = moduli["bulk"], moduli["shear"]
-    rate = symmetric_entries(velocity_gradient)
-    volumetric = bulk * (rate[0] + rate[4] + rate[8])
-    return [
-        dt * (2.0 * shear * value + (volumetric if index in tensors.DIAGONAL else 0.0))
-        for index, value in enumerate(tensors.deviator_entries(rate))
-    ]
+    volumetric = bulk * (rate[0] + rate[1] + rate[2])
+    return [dt * (2.0 * shear * value + (volumetric if index < 3 else 0.0))
+            for index, value in enumerate(tensors.voigt_deviator(rate))]
 
 
 def elastic_increment(params, rate_of_deformation, dt):
     """dt (K tr(d) I + 2 G dev(d)): the elastic stress increment for a strain-rate d [Pa]."""
-    return tensors.from_entries(elastic_increment_entries(elastic_moduli(params), tensors.entries(rate_of_deformation), dt))
+    return tensors.from_voigt(elastic_increment_voigt(elastic_moduli(params), tensors.voigt(rate_of_deformation), dt))
 
 
-def elastic_trial_entries(moduli, stress, velocity_gradient, dt):
-    """elastic_trial on and to 9 entries (what the plastic corrections continue with);
-    moduli = elastic_moduli(params)."""
+def elastic_trial_voigt(moduli, stress, velocity_gradient, dt):
+    """elastic_trial as [xx, yy, zz, xy] (`tensors.voigt`: what the plastic corrections continue
+    with); moduli = elastic_moduli(params)."""
     cos, sin = tensors.in_plane_rotation(velocity_gradient, dt)
-    rotated = tensors.rotate_entries(tensors.entries(stress), cos, sin)
-    increment = elastic_increment_entries(moduli, tensors.entries(velocity_gradient), dt)
+    rotated = tensors.rotate_voigt(tensors.voigt(stress), cos, sin)
+    increment = elastic_increment_voigt(moduli, rate_of_deformation(velocity_gradient), dt)
     return [a + b for a, b in zip(rotated, increment)]
 
 
 def elastic_trial_adjoint(moduli, stress, velocity_gradient, dt, trial_bar):
-    """Reverse mode of elastic_trial_entries, by hand: from the cotangent of the 9 trial
-    entries, the cotangents (bulk, shear, stress entries, L entries). Stress and L are
-    (..., 3, 3); trial_bar is a list of 9 entries.
+    """Reverse mode of elastic_trial_voigt, by hand: from the cotangent of the trial's
+    [xx, yy, zz, xy], the cotangents (bulk, shear, stress (..., 3, 3), L (..., 3, 3)).
 
     t = Q sigma Q^T + dt (2 G dev d + K tr(d) I), d = sym(L), Q the rotation (cos, sin) of
-    a = dt (L_yx - L_xy) / 4: sigma_bar = Q^T t_bar Q; the increment map is self-adjoint, so
-    d_bar = dt (2 G dev t_bar + K tr(t_bar) I) and L_bar = sym(d_bar); G_bar = 2 dt t_bar : dev d,
-    K_bar = dt tr(t_bar) tr(d); a_bar = t_bar : dR/da with R = Q sigma Q^T, Q = exp(theta J) the
-    rotation by theta = 2 atan(a) about z (J its generator, J_yx = 1 = -J_xy), so that
-    dR/dtheta = J R - R J and dtheta/da = 2 / (1 + a^2).
+    a = dt (L_yx - L_xy) / 4: sigma_bar is the transpose of the rotation applied to t_bar; the
+    increment map is self-adjoint, so d_bar = dt (2 G dev t_bar + K tr(t_bar) I);
+    G_bar = 2 dt t_bar . dev d, K_bar = dt tr(t_bar) tr(d); a_bar = t_bar . dR/da with
+    R = Q sigma Q^T, Q = exp(theta J) the rotation by theta = 2 atan(a) about z (J its
+    generator, J_yx = 1 = -J_xy): dR/dtheta = J R - R J = [-2 R_xy, 2 R_xy, 0, R_xx - R_yy],
+    dtheta/da = 2 / (1 + a^2).
     """
-    bulk, shear = moduli["bulk"], moduli["shear"]
-    e, grad = tensors.entries(stress), tensors.entries(velocity_gradient)
+    grad = tensors.entries(velocity_gradient)
     cos, sin = tensors.in_plane_rotation(velocity_gradient, dt)
-    stress_bar = tensors.rotate_entries(trial_bar, cos, -sin)
+    stress_bar = tensors.rotate_voigt_adjoint(trial_bar, cos, sin)
     a = 0.25 * dt * (grad[3] - grad[1])
-    scale = 1.0 / (1.0 + a * a)
-    rotated, tb = tensors.rotate_entries(e, cos, sin), trial_bar
-    # t_bar : (J R - R J): rows 0 and 1 of J R are -R_1j and R_0j, columns 0 and 1 of R J are R_i1 and -R_i0
-    turning = (sum(tb[3 + j] * rotated[j] - tb[j] * rotated[3 + j] for j in range(3))
-               + sum(tb[3 * i + 1] * rotated[3 * i] - tb[3 * i] * rotated[3 * i + 1] for i in range(3)))
-    a_bar = 2.0 * scale * turning
+    rotated, tb = tensors.rotate_voigt(tensors.voigt(stress), cos, sin), trial_bar
+    turning = 2.0 * rotated[3] * (tb[1] - tb[0]) + tb[3] * (rotated[0] - rotated[1])
+    a_bar = 2.0 * turning / (1.0 + a * a)
     a_bar = tensors.materialized(a_bar)   # read by two entries of L_bar, each re-derived it (gradients 1-4 % faster)
 
-    rate = symmetric_entries(grad)
-    rate_deviator = tensors.deviator_entries(rate)
-    trace_bar = trial_bar[0] + trial_bar[4] + trial_bar[8]
-    rate_bar = [dt * (2.0 * shear * value + (bulk * trace_bar if index in tensors.DIAGONAL else 0.0))
-                for index, value in enumerate(tensors.deviator_entries(trial_bar))]
-    gradient_bar = symmetric_entries(rate_bar)
-    gradient_bar[3] = gradient_bar[3] + 0.25 * dt * a_bar
-    gradient_bar[1] = gradient_bar[1] - 0.25 * dt * a_bar
+    rate = rate_of_deformation(velocity_gradient)
+    trace_bar = tb[0] + tb[1] + tb[2]
+    rate_bar = elastic_increment_voigt(moduli, trial_bar, dt)
+    spin_bar = 0.25 * dt * a_bar
+    zero = jnp.zeros_like(trace_bar)
+    gradient_bar = [rate_bar[0], 0.5 * rate_bar[3] - spin_bar, zero, 0.5 * rate_bar[3] + spin_bar, rate_bar[1],
+                    zero, zero, zero, rate_bar[2]]
     moduli_bar = {
-        "bulk": dt * trace_bar * (rate[0] + rate[4] + rate[8]),
-        "shear": 2.0 * dt * sum(b * v for b, v in zip(trial_bar, rate_deviator)),
+        "bulk": dt * trace_bar * (rate[0] + rate[1] + rate[2]),
+        "shear": 2.0 * dt * sum(b * v for b, v in zip(trial_bar, tensors.voigt_deviator(rate))),
     }
-    return moduli_bar, stress_bar, gradient_bar
+    return moduli_bar, tensors.tensor_cotangent(stress_bar), tensors.from_entries(gradient_bar)
 
 
 def elastic_trial(params, stress, velocity_gradient, dt):
     """Q sigma Q^T + dt (K tr(d) I + 2 G dev(d)): the stress rotated with the step's spin
     (Jaumann, Hughes-Winget) plus the elastic increment; the trial state of every model.
-    Written on the 9 entries (one split in, one stack out): reverse mode of per-entry reads,
-    of matrix products and of broadcasts of scalars over 3x3 is slow on XLA:CPU."""
-    return tensors.from_entries(elastic_trial_entries(elastic_moduli(params), stress, velocity_gradient, dt))
+    Written on the four values of `tensors.voigt` (one split in, one stack out): reverse mode
+    of per-entry reads, of matrix products and of broadcasts of scalars over 3x3 is slow on
+    XLA:CPU."""
+    return tensors.from_voigt(elastic_trial_voigt(elastic_moduli(params), stress, velocity_gradient, dt))
 
 
 def p_wave_speed(params):
@@ -131,8 +124,8 @@ class ElasticLaw:
         """Reverse mode of `update` at one point, by hand (see elastic_trial_adjoint):
         (constants_bar, stress_bar, L_bar, state_bar); nothing is remembered."""
         constants_bar, stress_bar, gradient_bar = elastic_trial_adjoint(
-            constants, stress, velocity_gradient, dt, tensors.entries(stress_bar))
-        return constants_bar, tensors.from_entries(stress_bar), tensors.from_entries(gradient_bar), state_bar
+            constants, stress, velocity_gradient, dt, tensors.voigt_cotangent(stress_bar))
+        return constants_bar, stress_bar, gradient_bar, state_bar
 
     def wave_speed(self, params):
         return p_wave_speed(params)
