@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 import jaxmpm
+from jaxmpm import SceneError
 from jaxmpm.materials import DruckerPrager, LinearElastic, material_parameters
 
 DENSITY = 2000.0        # kg/m^3 (not used by a point update, but the table needs it)
@@ -939,3 +940,19 @@ def test_tension_returns_to_the_apex(dtype, viscoplastic):
     recompressed = 0.3 * np.arange(1, SHORT_STEPS - expand_steps + 1)[None, :, None, None] * np.eye(3)
     assert_close(-history[plain, expand_steps + 1:] / SIGMA_C, recompressed, atol=tol)
     assert np.all(history[sheared == 1, 4:] == 0.0)
+
+
+def test_the_driver_refuses_out_of_plane_shear_and_an_asymmetric_stress():
+    # The stress updates work on [xx, yy, zz, xy] (plane strain, axisymmetry): an input they
+    # would silently ignore is refused, naming it.
+    table = dict(model="linear_elastic", density=1000.0, young=1e6, poisson=0.3)
+    gradient = np.zeros((4, 3, 3))
+    gradient[:, 0, 1] = 1.0
+    assert np.isfinite(np.asarray(jaxmpm.drive(table, gradient, 1e-3))).all()
+    gradient[2, 1, 2] = 0.5
+    with pytest.raises(SceneError, match=r"velocity_gradient has out-of-plane shear .* up to 0\.5"):
+        jaxmpm.drive(table, gradient, 1e-3)
+    stress0 = -1e3 * np.eye(3)
+    stress0[0, 1] = 10.0
+    with pytest.raises(SceneError, match=r"stress0 is not symmetric: .* up to 10"):
+        jaxmpm.drive(table, np.zeros((4, 3, 3)), 1e-3, stress0)
