@@ -67,8 +67,7 @@ def measure(path: Path) -> dict:
         return sum(jnp.sum(history * history) for history in probes.values())
 
     materials = params["materials"]
-    chosen = sim.checkpointing.resolved(sim.steps, sim.point_count, sim.structure.layout.shape.support,
-                                        jnp.dtype(sim.dtype).itemsize)
+    chosen = sim.checkpointing_for(sim.initial_state(params))
     result = {"scene": path.name, "points": sim.point_count, "steps": sim.steps, "dtype": str(sim.dtype),
               "segment": chosen.segment_length(sim.steps), "kept": chosen.step}
     for name, program in (("forward", jax.jit(misfit)), ("gradient", jit_reverse_mode(jax.grad(misfit)))):
@@ -131,7 +130,7 @@ def section(results: list[dict]) -> str:
         "",
         "The forward program is the scene's whole probe rollout (`Simulation.probes`); the gradient is that of the "
         "sum of squares of its probe histories with respect to every material parameter, as a calibration compiles "
-        "it. Segment: the checkpoint segment jaxmpm chose (whole: one segment, the rollout's kept values fit the "
+        "it. Segment: the checkpoint segment jaxmpm chose (whole: one segment, the rollout's states fit the "
         "memory budget). Trace is Python tracing and lowering (Python's garbage collector paused, as jaxmpm does "
         "for its own programs), compile is XLA. A calibration or a `jaxmpm run` "
         "with the persistent cache on (the CLI default) pays this once per scene structure.",

@@ -31,7 +31,7 @@ from jaxmpm.parameters import scene_parameters
 from jaxmpm.probes import make_probes
 from jaxmpm.output import RunFile, deferred_interrupts
 from jaxmpm.results import FileSnapshots, Result
-from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps, with_evolving_tangents
+from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps, state_bytes, with_evolving_tangents
 from jaxmpm.scene import Scene, body_speed
 from jaxmpm.seeding import padded, seed_bodies
 from jaxmpm.solver import BodyBlock, Structure, evolving_leaves, make_step
@@ -289,10 +289,14 @@ class Simulation:
 
         return advance
 
+    def checkpointing_for(self, initial: State) -> Checkpointing:
+        """The checkpointing of a probe rollout from `initial`, "auto" decided for its size."""
+        return self.checkpointing.resolved(self.steps, initial.particles.x.shape[0], self.structure.layout.shape.support,
+                                           initial.particles.x.dtype.itemsize, state_bytes(initial))
+
     def _probes_from_state(self, params, initial):
         advance = self._advance_and_observe(params, initial.particles.x)
-        checkpointing = self.checkpointing.resolved(self.steps, initial.particles.x.shape[0],
-                                                    self.structure.layout.shape.support, initial.particles.x.dtype.itemsize)
+        checkpointing = self.checkpointing_for(initial)
         initial = with_evolving_tangents(initial, evolving_leaves(self.structure, initial), params)
         final, histories = checkpointed_rollout(advance, initial, self.steps, checkpointing)
         first = self.observe_start(initial)

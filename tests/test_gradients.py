@@ -206,21 +206,50 @@ def test_checkpoint_segments_do_not_change_values_or_gradients(segment, step, on
     np.testing.assert_allclose(gradient["materials"]["soil"]["young"], gradient_ref["materials"]["soil"]["young"], rtol=1e-10)
 
 
-def test_auto_checkpointing_keeps_step_intermediates_only_within_its_memory_budget():
+def test_auto_checkpointing_keeps_states_or_step_intermediates_only_within_its_memory_budget():
     from jaxmpm.rollout import KEPT_VALUES_PER_STENCIL_NODE, STORE_BUDGET_BYTES
 
     auto = jaxmpm.Checkpointing()
     kept = "recompute_arithmetic"
-    assert auto.resolved(steps=200, points=5_184, support=3, itemsize=4).step == kept          # ~67 MB
-    assert auto.resolved(steps=200, points=100, support=2, itemsize=8) == jaxmpm.Checkpointing(200, kept)   # one segment
-    assert auto.resolved(steps=200, points=5_184, support=3, itemsize=4).segment is None      # ~670 MB in one
-    assert auto.resolved(steps=200, points=16_384, support=3, itemsize=4).step == kept         # ~212 MB
-    assert auto.resolved(steps=10_000, points=16_384, support=3, itemsize=4).step == "recompute"  # ~1.1 GB
-    assert auto.resolved(steps=200, points=16_384, support=3, itemsize=8).step == "recompute"    # ~425 MB
-    assert jaxmpm.Checkpointing(step="recompute").resolved(200, 100, 2, 8).step == "recompute"
-    # the estimate at the budget's edge: 20-step segments of a point count just inside it
+
+    def state(points, itemsize):       # ~20 values per point: x, v, C_p, the 3 x 3 stress, volume, mass, history
+        return points * 20 * itemsize
+
+    # every step's state fits: one segment, each step run again just before it is differentiated
+    assert auto.resolved(200, 100, 2, 8, state(100, 8)) == jaxmpm.Checkpointing(200, "recompute")
+    assert auto.resolved(200, 5_184, 3, 4, state(5_184, 4)) == jaxmpm.Checkpointing(200, "recompute")    # ~83 MB
+    # they do not: segments, keeping the steps' intermediates when a segment's fit
+    assert auto.resolved(2_000, 5_184, 3, 4, state(5_184, 4)) == jaxmpm.Checkpointing(None, kept)        # ~830 MB of states
+    assert auto.resolved(10_000, 16_384, 3, 4, state(16_384, 4)).step == "recompute"    # segments' intermediates ~1.1 GB
+    assert auto.resolved(1_000, 16_384, 3, 8, state(16_384, 8)) == jaxmpm.Checkpointing(None, "recompute")
+    assert jaxmpm.Checkpointing(step=kept).resolved(200, 100, 2, 8, state(100, 8)) == jaxmpm.Checkpointing(None, kept)
+    assert jaxmpm.Checkpointing(segment=10).resolved(200, 100, 2, 8, state(100, 8)).segment == 10
+    # at the budget's edge: the states of 400 steps, and the intermediates of 20-step segments
+    assert auto.resolved(400, 100, 2, 8, STORE_BUDGET_BYTES // 400).segment == 400
+    assert auto.resolved(400, 100, 2, 8, STORE_BUDGET_BYTES // 400 + 1).segment is None
     edge = STORE_BUDGET_BYTES // (20 * KEPT_VALUES_PER_STENCIL_NODE * 9 * 4)
-    assert auto.resolved(400, edge, 3, 4).step == kept and auto.resolved(400, edge + 1, 3, 4).step == "recompute"
+    assert auto.resolved(400, edge, 3, 4, STORE_BUDGET_BYTES).step == kept
+    assert auto.resolved(400, edge + 1, 3, 4, STORE_BUDGET_BYTES).step == "recompute"
+
+
+def test_a_rollout_in_one_segment_keeps_its_states_and_nothing_more():
+    # "auto" on a small scene: one segment whose forward pass keeps each step's state and whose
+    # backward pass runs each step again. The gradient's XLA temporaries are then those states
+    # (steps x state bytes, the memory the budget rule counts), not the steps' intermediates
+    # (~8x more), and not a few segment states.
+    from jaxmpm.rollout import state_bytes
+
+    sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK.replace("duration = 0.01", "duration = 0.1")))   # 140 steps
+    initial = sim.initial_state()
+    assert sim.checkpointing_for(initial) == jaxmpm.Checkpointing(sim.steps, "recompute")
+    states = sim.steps * state_bytes(initial)
+    temp = {}
+    for step in ("auto", "recompute_arithmetic"):
+        kept = jaxmpm.Simulation(sim.scene, jaxmpm.Checkpointing(segment=sim.steps if step != "auto" else None, step=step))
+        compiled = jax.jit(jax.grad(lambda p, kept=kept: settlement_measure(kept, p))).lower(sim.params).compile()
+        temp[step] = compiled.memory_analysis().temp_size_in_bytes
+    assert 0.5 * states <= temp["auto"] <= 1.5 * states, (temp, states)
+    assert temp["recompute_arithmetic"] > 3 * temp["auto"], temp
 
 
 def test_reverse_mode_jit_drops_library_reductions_and_keeps_the_gradient():
