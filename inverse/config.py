@@ -114,16 +114,24 @@ class CalibrationConfig:
 
     def simulations(self):
         """inverse.Experiments with one jaxmpm.Simulation per scene file (experiments of the
-        same file share it, so they run together under vmap)."""
+        same file share it, so they run together under vmap, for every start). Each of the
+        rollouts run together gets its share of the memory reverse mode may keep
+        (`jaxmpm.Checkpointing.budget`)."""
         import jaxmpm
+        from jaxmpm.rollout import STORE_BUDGET_BYTES
         from inverse.experiments import Experiment
 
+        sharing = {}
+        for experiment in self.experiments:
+            key = experiment.scene_path.resolve()
+            sharing[key] = sharing.get(key, 0) + 1
         sims = {}
         experiments = []
         for experiment in self.experiments:
             key = experiment.scene_path.resolve()
             if key not in sims:
-                sims[key] = jaxmpm.Simulation(experiment.scene)
+                together = sharing[key] * self.options.get("starts", 1)
+                sims[key] = jaxmpm.Simulation(experiment.scene, jaxmpm.Checkpointing(budget=STORE_BUDGET_BYTES // together))
             experiments.append(Experiment(sims[key], experiment.observations, experiment.set, experiment.name))
         return experiments
 

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
 
-STORE_BUDGET_BYTES = 256 * 1024**2   # "auto" keeps a segment's step intermediates up to this size
+STORE_BUDGET_BYTES = 256 * 1024**2   # what "auto" lets a rollout keep for its backward pass (states or intermediates)
 
 # Elementwise arithmetic and layout operations: under step = "recompute_arithmetic" the backward
 # pass recomputes their results (XLA fuses the recomputation into its own kernels) instead of
@@ -54,7 +54,7 @@ class Checkpointing:
 
     step: what the backward pass keeps of each step of the segment it differentiates:
     "auto" (the default: with no segment given, one segment of "recompute" steps when the
-    states of the whole rollout fit in STORE_BUDGET_BYTES: the forward pass keeps every step's
+    states of the whole rollout fit in the budget: the forward pass keeps every step's
     state and the backward pass runs each step again just before differentiating it, so no
     intermediate is written to memory and read back (the calibration examples' gradients
     compiled 20-25 % sooner, with 20-30 % fewer kernels, and ran as fast or up to 11 %
@@ -67,12 +67,16 @@ class Checkpointing:
     fewer, but reading the stored products back cost more than recomputing them, and 2.5x the
     memory of "recompute_arithmetic"); "names:stencil" (only the shape-function stencil) or
     "dots" (JAX's dots_with_no_batch_dims_saveable policy). Measured in docs/benchmarks.md and
-    benchmarks/reverse_decomposition.py. A calibration's starts run under vmap, so their
-    kept intermediates add up: S starts keep S times as much.
+    benchmarks/reverse_decomposition.py.
+
+    budget: the bytes "auto" lets one rollout keep (default STORE_BUDGET_BYTES). Rollouts run
+    together under vmap (a calibration's starts, experiments sharing a scene) each keep their
+    own: `jaxmpm calibrate` gives each rollout its share of the default.
     """
 
     segment: int | None = None
     step: str = "auto"
+    budget: int = STORE_BUDGET_BYTES
 
     def resolved(self, steps, points, support, itemsize, state_bytes):
         """This policy with "auto" decided for a rollout of `steps` steps of `points` points
@@ -80,11 +84,11 @@ class Checkpointing:
         `state_bytes` bytes."""
         if self.step != "auto":
             return self
-        if self.segment is None and steps * state_bytes <= STORE_BUDGET_BYTES:   # one segment: no forward pass run twice
+        if self.segment is None and steps * state_bytes <= self.budget:   # one segment: no forward pass run twice
             return dataclasses.replace(self, segment=steps, step="recompute")
         per_step = points * KEPT_VALUES_PER_STENCIL_NODE * support**2 * itemsize
         kept = self.segment_length(steps) * per_step
-        return dataclasses.replace(self, step="recompute_arithmetic" if kept <= STORE_BUDGET_BYTES else "recompute")
+        return dataclasses.replace(self, step="recompute_arithmetic" if kept <= self.budget else "recompute")
 
     def step_checkpoint(self, advance):
         """The per-step wrapper: "recompute" (jax.checkpoint, nothing saved), "store" (none:

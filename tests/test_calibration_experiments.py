@@ -287,3 +287,20 @@ def test_calibrate_command_with_two_experiments(tmp_path, capsys):
     error = capsys.readouterr().err
     assert "experiments[0].nmae is not a known key (did you mean 'name'?)" in error
     assert error.count("\n") == 1
+
+
+def test_rollouts_run_together_share_the_reverse_mode_memory_budget(tmp_path):
+    # jaxmpm calibrate runs the experiments of one scene file and every start under one vmap,
+    # and each rollout keeps its own states for reverse mode: the budget is divided among them.
+    from inverse.config import load_calibration
+    from jaxmpm.rollout import STORE_BUDGET_BYTES
+
+    experiment = f'scene = "{EXAMPLES / "calibrate_twin_scene.toml"}"\nobservations = "{EXAMPLES / "calibrate_twin_observations.csv"}"\n'
+    fit = '[fit]\n"sand.friction_angle" = { low = 15.0, high = 40.0, start = 30.0 }\n'
+    for experiments, starts, share in ((1, 1, 1), (1, 3, 3), (2, 3, 6)):
+        path = tmp_path / f"c{experiments}{starts}.calibration.toml"
+        text = experiment if experiments == 1 else "".join(f"[[experiments]]\n{experiment}" for _ in range(experiments))
+        path.write_text(text + fit + f"[optimizer]\nname = \"lbfgs\"\nstarts = {starts}\n")
+        sims = {id(e.sim): e.sim for e in load_calibration(path).simulations()}
+        assert len(sims) == 1
+        assert next(iter(sims.values())).checkpointing.budget == STORE_BUDGET_BYTES // share
