@@ -114,9 +114,10 @@ class CalibrationConfig:
 
     def simulations(self):
         """inverse.Experiments with one jaxmpm.Simulation per scene file (experiments of the
-        same file share it, so they run together under vmap, for every start). Each of the
-        rollouts run together gets its share of the memory reverse mode may keep
-        (`jaxmpm.Checkpointing.budget`)."""
+        same file share it, so they run together under vmap, for every start). With a
+        reverse-mode optimizer, each of the rollouts run together gets its share of the memory
+        reverse mode may keep (`jaxmpm.Checkpointing.budget`); Levenberg-Marquardt's forward
+        mode keeps none."""
         import jaxmpm
         from jaxmpm.rollout import STORE_BUDGET_BYTES
         from inverse.experiments import Experiment
@@ -130,7 +131,8 @@ class CalibrationConfig:
         for experiment in self.experiments:
             key = experiment.scene_path.resolve()
             if key not in sims:
-                together = sharing[key] * self.options.get("starts", 1)
+                reverse = self.options.get("name", "lm") != "lm"
+                together = sharing[key] * self.options.get("starts", 1) if reverse else 1
                 sims[key] = jaxmpm.Simulation(experiment.scene, jaxmpm.Checkpointing(budget=STORE_BUDGET_BYTES // together))
             experiments.append(Experiment(sims[key], experiment.observations, experiment.set, experiment.name))
         return experiments

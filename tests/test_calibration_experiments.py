@@ -297,10 +297,11 @@ def test_rollouts_run_together_share_the_reverse_mode_memory_budget(tmp_path):
 
     experiment = f'scene = "{EXAMPLES / "calibrate_twin_scene.toml"}"\nobservations = "{EXAMPLES / "calibrate_twin_observations.csv"}"\n'
     fit = '[fit]\n"sand.friction_angle" = { low = 15.0, high = 40.0, start = 30.0 }\n'
-    for experiments, starts, share in ((1, 1, 1), (1, 3, 3), (2, 3, 6)):
-        path = tmp_path / f"c{experiments}{starts}.calibration.toml"
+    cases = (("lbfgs", 1, 1, 1), ("lbfgs", 1, 3, 3), ("adam", 2, 3, 6), ("lm", 2, 3, 1))   # lm: forward mode, keeps none
+    for optimizer, experiments, starts, share in cases:
+        path = tmp_path / f"{optimizer}{experiments}{starts}.calibration.toml"
         text = experiment if experiments == 1 else "".join(f"[[experiments]]\n{experiment}" for _ in range(experiments))
-        path.write_text(text + fit + f"[optimizer]\nname = \"lbfgs\"\nstarts = {starts}\n")
+        path.write_text(text + fit + f"[optimizer]\nname = \"{optimizer}\"\nstarts = {starts}\n")
         sims = {id(e.sim): e.sim for e in load_calibration(path).simulations()}
         assert len(sims) == 1
         assert next(iter(sims.values())).checkpointing.budget == STORE_BUDGET_BYTES // share
