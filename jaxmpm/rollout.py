@@ -7,6 +7,7 @@ by `Checkpointing`; see its docstring.
 import dataclasses
 import functools
 import math
+import numbers
 
 import jax
 import jax.numpy as jnp
@@ -77,6 +78,10 @@ class Checkpointing:
     segment: int | None = None
     step: str = "auto"
     budget: int = STORE_BUDGET_BYTES
+
+    def __post_init__(self):
+        if isinstance(self.budget, bool) or not isinstance(self.budget, numbers.Integral) or self.budget < 0:
+            raise ValueError(f"Checkpointing.budget = {self.budget!r}: give a number of bytes, an int >= 0.")
 
     def resolved(self, steps, points, support, itemsize, state_bytes):
         """This policy with "auto" decided for a rollout of `steps` steps of `points` points

@@ -218,6 +218,8 @@ def test_auto_checkpointing_keeps_states_or_step_intermediates_only_within_its_m
     # every step's state fits: one segment, each step run again just before it is differentiated
     assert auto.resolved(200, 100, 2, 8, state(100, 8)) == jaxmpm.Checkpointing(200, "recompute")
     assert auto.resolved(200, 5_184, 3, 4, state(5_184, 4)) == jaxmpm.Checkpointing(200, "recompute")    # ~83 MB
+    with pytest.raises(ValueError, match=r"Checkpointing.budget = '256 MB': give a number of bytes"):
+        jaxmpm.Checkpointing(budget="256 MB")
     # rollouts run together (a calibration's starts) share the budget: the same one in segments
     assert jaxmpm.Checkpointing(budget=STORE_BUDGET_BYTES // 4).resolved(200, 5_184, 3, 4, state(5_184, 4)).segment is None
     # they do not: segments, keeping the steps' intermediates when a segment's fit
