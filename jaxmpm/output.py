@@ -130,9 +130,12 @@ class RunFile:
             slot = file["resume"][str(attrs["resume_slot"])]
             leaves = []
             for index, (name, leaf) in enumerate(leaves_with_names(template)):
-                value = slot[str(index)][()]
-                assert slot[str(index)].attrs["path"] == name and value.shape == np.shape(leaf), name
-                leaves.append(jax.numpy.asarray(value, dtype=leaf.dtype))
+                stored_leaf = slot[str(index)] if str(index) in slot else None
+                if stored_leaf is None or stored_leaf.attrs["path"] != name or stored_leaf.shape != np.shape(leaf):
+                    raise SceneError(f"--resume: {str(path)!r} holds a state laid out unlike this jaxmpm's "
+                                     f"(at {name}, shape {np.shape(leaf)}): it was written by another build; "
+                                     "run it again from the start.")
+                leaves.append(jax.numpy.asarray(stored_leaf[()], dtype=leaf.dtype))
             state = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(template), leaves)
             outputs = int(attrs["resume_output"])
             run = cls(path, file, sim)

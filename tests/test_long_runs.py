@@ -90,6 +90,15 @@ def test_resume_refuses_what_it_cannot_continue(tmp_path):
         sim.run(other, progress=False, save_to=tmp_path / "done.h5", resume=True)
     again = sim.run(progress=False, save_to=tmp_path / "done.h5", resume=True)     # complete: nothing to add
     np.testing.assert_array_equal(again.probes["top"], done.probes["top"])
+    # a state laid out as an earlier build stored it: the stress as (N, 3, 3) tensors
+    with h5py.File(tmp_path / "done.h5", "r+") as file:
+        slot = file["resume"][str(file.attrs["resume_slot"])]
+        index = next(key for key in slot if slot[key].attrs["path"] == ".particles.stress_voigt")
+        del slot[index]
+        slot.create_dataset(index, data=np.zeros((sim.point_count, 3, 3)))
+        slot[index].attrs["path"] = ".particles.stress"
+    with pytest.raises(jaxmpm.SceneError, match="laid out unlike this jaxmpm's .at .particles.stress_voigt"):
+        sim.run(progress=False, save_to=tmp_path / "done.h5", resume=True)
 
 
 def test_a_streamed_run_holds_no_snapshot_in_memory_and_equals_the_in_memory_run(tmp_path):
