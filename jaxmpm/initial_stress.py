@@ -26,7 +26,7 @@ def jaky_k0(friction_angle):
 
 
 def geostatic_stress(depth, density, vertical_gravity, k0):
-    """(n, 3, 3) stresses: sigma_yy = rho g_y d, sigma_xx = sigma_zz = K0 sigma_yy."""
+    """(n, 4) stresses [sigma_xx, sigma_yy, sigma_zz, sigma_xy] (`Particles.stress_voigt`):
+    sigma_yy = rho g_y d, sigma_xx = sigma_zz = K0 sigma_yy, no shear."""
     vertical = density * vertical_gravity * depth
-    diagonal = jnp.stack([k0 * vertical, vertical, k0 * vertical], axis=-1)
-    return diagonal[:, :, None] * jnp.eye(3, dtype=diagonal.dtype)
+    return jnp.stack([k0 * vertical, vertical, k0 * vertical, jnp.zeros_like(vertical)], axis=-1)

@@ -261,7 +261,7 @@ class Simulation:
             x=jnp.asarray(self.seeds.positions, dtype),
             v=jnp.concatenate(velocities),
             affine=jnp.zeros((count, 2, 2), dtype),
-            stress=jnp.concatenate(stresses),
+            stress_voigt=jnp.concatenate(stresses),
             volume=jnp.asarray(self.seeds.volumes, dtype),
             mass=jnp.concatenate(masses),
             history=tuple(histories),
@@ -270,10 +270,11 @@ class Simulation:
         return self.place(State(particles=particles, rigid=rigid, **counters_at_start()))
 
     def body_initial_stress(self, body, block, material):
-        """(n_body, 3, 3) initial stress of one body: zero, or geostatic from its params."""
+        """(n_body, 4) initial stress of one body (`Particles.stress_voigt`): zero, or
+        geostatic from its params."""
         size = block.stop - block.start
         if body.initial_stress is None:
-            return jnp.zeros((size, 3, 3), self.dtype)
+            return jnp.zeros((size, 4), self.dtype)
         k0 = body.initial_stress.k0
         k0 = jaky_k0(material["friction_angle"]) if k0 == "jaky" else k0
         spacing = self.scene.grid.cell / self.scene.numerics.ppc

@@ -50,7 +50,7 @@ from jaxmpm.contact import Interface, resolve_interfaces
 from jaxmpm.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
 )
-from jaxmpm.materials.base import points_update
+from jaxmpm.materials.base import points_update_voigt
 from jaxmpm.state import Diagnostics, record_errors
 from jaxmpm.tensors import components, entries, from_entries, stack_last
 
@@ -157,12 +157,13 @@ def particles_to_grid(particles, stencil, offsets, field, structure):
     mass, volume = particles.mass, particles.volume
     weighted = per_point(mass) * stencil.weights
     gravity = structure.gravity
-    sigma = entries(particles.stress)
+    sigma_xx, sigma_yy, sigma_zz, sigma_xy = components(particles.stress_voigt)
+    sigma = [[sigma_xx, sigma_xy], [sigma_xy, sigma_yy]]
     velocity = components(particles.v)
     affine = components(particles.affine.reshape(-1, 4)) if offsets is not None else None   # C_xx, C_xy, C_yx, C_yy
     external = [mass * gravity[0], mass * gravity[1]]
     if structure.axisymmetric:   # the hoop stress pulls the ring inwards: -V_p sigma_tt N_I / r_p
-        external[0] = external[0] - volume * sigma[8] / point_radius(particles.x, structure)
+        external[0] = external[0] - volume * sigma_zz / point_radius(particles.x, structure)
     momentum, force = [], []
     for axis in range(2):
         moving = per_point(velocity[axis])
@@ -170,8 +171,8 @@ def particles_to_grid(particles, stencil, offsets, field, structure):
             moving = moving + per_point(affine[2 * axis]) * offsets[0] + per_point(affine[2 * axis + 1]) * offsets[1]
         momentum.append(weighted * moving)
         # -V_p sigma_p . grad N_I
-        force.append(stencil.weights * per_point(external[axis]) - stencil.gradients[0] * per_point(volume * sigma[3 * axis])
-                     - stencil.gradients[1] * per_point(volume * sigma[3 * axis + 1]))
+        force.append(stencil.weights * per_point(external[axis]) - stencil.gradients[0] * per_point(volume * sigma[axis][0])
+                     - stencil.gradients[1] * per_point(volume * sigma[axis][1]))
     channels = [weighted, *momentum, *force]
     if structure.has_contact:
         channels += [per_point(mass) * stencil.gradients[0], per_point(mass) * stencil.gradients[1]]
@@ -472,19 +473,19 @@ def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
     for block, history in zip(bodies, particles.history):
         points = block.points
         if block.kinematics != "free":
-            stresses.append(particles.stress[points])
+            stresses.append(particles.stress_voigt[points])
             histories.append(history)
             stretches.append(jnp.ones_like(stretch[points]))
             continue
-        update = points_update(block.law, dt)
-        stress, history = update(params[block.material_name], particles.stress[points], gradient[points], history)
+        update = points_update_voigt(block.law, dt)
+        stress, history = update(params[block.material_name], particles.stress_voigt[points], gradient[points], history)
         stresses.append(stress)
         histories.append(history)
         stretches.append(stretch[points])
     if any(block.kinematics != "free" for block in bodies):
         stretch = jnp.concatenate(stretches)
     return particles.replace(
-        stress=jnp.concatenate(stresses),
+        stress_voigt=jnp.concatenate(stresses),
         history=tuple(histories),
         volume=particles.volume * stretch,
     )
@@ -512,7 +513,7 @@ def evolving_leaves(structure, state):
     histories = tuple(marked(history, block.kinematics == "free" and not getattr(block.law, "keeps_history", False))
                       for block, history in zip(structure.bodies, particles.history))
     return state.replace(
-        particles=particles.replace(x=True, v=True, affine=structure.transfer == "apic", stress=True, volume=True,
+        particles=particles.replace(x=True, v=True, affine=structure.transfer == "apic", stress_voigt=True, volume=True,
                                     mass=False, history=histories, flags=False),
         rigid=marked(state.rigid, True), step=False, error_step=False, error_point=False,
     )

@@ -11,6 +11,8 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
+from jaxmpm.tensors import components, from_voigt
+
 LEFT_GRID = 1       # error bit: the point left the grid
 NON_FINITE = 2      # error bit: position, velocity or stress became NaN or Inf
 
@@ -24,7 +26,10 @@ class Particles:
       x: (N, 2) position [m].
       v: (N, 2) velocity [m/s].
       affine: (N, 2, 2) APIC affine velocity C_p = sum_I v_I (x) grad N_I [1/s] (zero with FLIP).
-      stress: (N, 3, 3) Cauchy stress, tension positive [Pa]; [2, 2] is sigma_zz.
+      stress_voigt: (N, 4) Cauchy stress [sigma_xx, sigma_yy, sigma_zz, sigma_xy], tension
+        positive [Pa]: plane strain and axisymmetry have no out-of-plane shear, and the stress
+        is symmetric, so these four values are the whole tensor (`stress` gives it as 3 x 3).
+        In axisymmetry x, y, z are r, z, theta: sigma_zz is the hoop stress.
       volume: (N,) current volume [m^3/m].
       mass: (N,) mass [kg/m].
       history: tuple, one dict per body of (n_body,) history variables of its material.
@@ -34,11 +39,16 @@ class Particles:
     x: jax.Array
     v: jax.Array
     affine: jax.Array
-    stress: jax.Array
+    stress_voigt: jax.Array
     volume: jax.Array
     mass: jax.Array
     history: tuple
     flags: jax.Array
+
+    @property
+    def stress(self):
+        """(N, 3, 3) Cauchy stress tensors, tension positive [Pa]; [2, 2] is sigma_zz."""
+        return from_voigt(components(self.stress_voigt))
 
     def replace(self, **changes):
         return dataclasses.replace(self, **changes)
@@ -127,7 +137,7 @@ def record_errors(state, outside):
     finite = (
         jnp.all(jnp.isfinite(particles.x), axis=1)
         & jnp.all(jnp.isfinite(particles.v), axis=1)
-        & jnp.all(jnp.isfinite(particles.stress), axis=(1, 2))
+        & jnp.all(jnp.isfinite(particles.stress_voigt), axis=1)
     )
     flags = particles.flags | jnp.where(outside, LEFT_GRID, 0) | jnp.where(finite, 0, NON_FINITE)
     step = state.step + 1

@@ -253,7 +253,8 @@ def test_axial_translation_keeps_a_prestressed_cylinder_unchanged():
     stress = np.zeros((count, 3, 3))
     stress[:, 0, 0] = stress[:, 2, 2] = -pressure
     velocity = np.tile([0.0, 1.0], (count, 1))
-    state = state.replace(particles=state.particles.replace(stress=stress, v=velocity))
+    stored = np.tile([-pressure, 0.0, -pressure, 0.0], (count, 1))     # [sigma_rr, sigma_zz, sigma_tt, sigma_rz]
+    state = state.replace(particles=state.particles.replace(stress_voigt=stored, v=velocity))
     final = sim.final_state(initial=state)
     moved = np.asarray(final.particles.x - state.particles.x)
     assert np.allclose(moved[:, 1], 0.1, rtol=1e-6)

@@ -499,7 +499,7 @@ def test_prestressed_block_rotation_keeps_invariants_and_turns_stress(update):
     s0 = np.array([[-100.0, 20.0, 0.0], [20.0, -50.0, 0.0], [0.0, 0.0, -70.0]])
     state = state.replace(particles=state.particles.replace(
         v=omega * jnp.stack([-relative[:, 1], relative[:, 0]], axis=1),
-        stress=jnp.broadcast_to(jnp.asarray(s0), state.particles.stress.shape),
+        stress_voigt=jnp.broadcast_to(jnp.asarray([s0[0, 0], s0[1, 1], s0[2, 2], s0[0, 1]]), state.particles.stress_voigt.shape),
     ))
     result = sim.run(initial=state, progress=False)
     x0 = np.asarray(state.particles.x)

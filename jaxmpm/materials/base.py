@@ -28,6 +28,7 @@ import jax.numpy as jnp
 
 from jaxmpm.adjoints import hand_reversed
 from jaxmpm.keys import Key, check_value
+from jaxmpm.tensors import components, from_voigt, stack_last, voigt
 
 
 ELASTIC_KEYS = (
@@ -125,3 +126,17 @@ def points_update(law, dt):
 
     new_stress = hand_reversed(new_stress, adjoint)
     return lambda params, stress, velocity_gradient, state: (new_stress(params, stress, velocity_gradient, state), state)
+
+
+def points_update_voigt(law, dt):
+    """`points_update` on stresses stored as (N, 4) [sigma_xx, sigma_yy, sigma_zz, sigma_xy]
+    (`Particles.stress_voigt`): (params, stress (N, 4), L (N, 3, 3), state) -> (stress (N, 4),
+    state). The laws read and write these four values of their 3 x 3 stresses (`voigt`,
+    `from_voigt`), so the conversions around them cancel inside the compiled step."""
+    update = points_update(law, dt)
+
+    def on_voigt(params, stress, velocity_gradient, state):
+        stress, state = update(params, from_voigt(components(stress)), velocity_gradient, state)
+        return stack_last(voigt(stress)), state
+
+    return on_voigt
