@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
 
-STORE_BUDGET_BYTES = 256 * 1024**2   # what "auto" lets a rollout keep for its backward pass (states or intermediates)
+STORE_BUDGET_BYTES = 512 * 1024**2   # what "auto" lets a rollout keep for its backward pass (states and node arrays)
 
 # Elementwise arithmetic and layout operations: under step = "recompute_arithmetic" the backward
 # pass recomputes their results (XLA fuses the recomputation into its own kernels) instead of
@@ -25,12 +25,9 @@ RECOMPUTED_PRIMITIVES = frozenset({
     "broadcast_in_dim", "reshape", "squeeze", "expand_dims", "concatenate", "slice", "pad", "transpose", "copy",
 })
 
-# What a step keeps for its backward pass under "recompute_arithmetic", in values per point per
-# stencil node, measured from the compiled gradients' temporaries ("recompute_arithmetic" minus
-# "recompute", 20-step segments, Drucker-Prager, 484 to 16,384 points): 115-126 values per point
-# with 3 x 3 stencils (13-14 s^2, float32 and float64), 59-61 with 2 x 2 (15 s^2); 18 s^2 covers
-# them with a margin.
-KEPT_VALUES_PER_STENCIL_NODE = 18
+# The name of the node arrays "recompute_grid" keeps (`jax.ad_checkpoint.checkpoint_name`): what
+# the step's particle-to-grid transfers produce (`solver.particles_to_grid`, `remap_velocity`).
+KEPT_GRID = "grid"
 
 
 def arithmetic_recomputed(primitive, *_, **__):
@@ -54,13 +51,17 @@ class Checkpointing:
     during the forward pass itself, so no forward pass runs twice (peak memory is the same).
 
     step: what the backward pass keeps of each step of the segment it differentiates:
-    "auto" (the default: with no segment given, one segment of "recompute" steps when the
-    states of the whole rollout fit in the budget: the forward pass keeps every step's
-    state and the backward pass runs each step again just before differentiating it, so no
-    intermediate is written to memory and read back (the calibration examples' gradients
-    compiled 20-25 % sooner, with 20-30 % fewer kernels, and ran as fast or up to 11 %
-    faster); otherwise segments of "recompute_arithmetic" steps when a segment's kept
-    intermediates are estimated to fit in the budget, else of "recompute" steps);
+    "auto" (the default: with no segment given, one segment of "recompute_grid" steps when
+    the states and the kept node arrays of the whole rollout fit in the budget, else one
+    segment of "recompute" steps when the states alone fit: the forward pass keeps every
+    step's state and the backward pass runs each step again just before differentiating it,
+    so no forward pass runs twice and no intermediate is written to memory and read back;
+    otherwise segments of "recompute_grid" steps);
+    "recompute_grid" (the step runs again, all but its two particle-to-grid transfers: their
+    node arrays, named KEPT_GRID, are kept. 16,384 points, 200 steps in one segment: gradient
+    19 % faster than "recompute" for 46 % more memory; in segments as fast as
+    "recompute_arithmetic" or up to 10 % faster, for a third of its memory;
+    docs/benchmarks.md, 2026-12-04);
     "recompute_arithmetic" (every intermediate but elementwise arithmetic, which the backward
     recomputes inside its own kernels: gradients 15-30 % faster than "recompute" from 100 to
     16k points, for ~460 bytes per point per step of a segment in float32 with 3 x 3 stencils);
@@ -83,17 +84,17 @@ class Checkpointing:
         if isinstance(self.budget, bool) or not isinstance(self.budget, numbers.Integral) or self.budget < 0:
             raise ValueError(f"Checkpointing.budget = {self.budget!r}: give a number of bytes, an int >= 0.")
 
-    def resolved(self, steps, points, support, itemsize, state_bytes):
-        """This policy with "auto" decided for a rollout of `steps` steps of `points` points
-        with s x s stencils (s = `support`), values of `itemsize` bytes and states of
-        `state_bytes` bytes."""
+    def resolved(self, steps, state_bytes, grid_bytes):
+        """This policy with "auto" decided for a rollout of `steps` steps whose states take
+        `state_bytes` bytes and whose kept node arrays ("recompute_grid") `grid_bytes` a step."""
         if self.step != "auto":
             return self
-        if self.segment is None and steps * state_bytes <= self.budget:   # one segment: no forward pass run twice
-            return dataclasses.replace(self, segment=steps, step="recompute")
-        per_step = points * KEPT_VALUES_PER_STENCIL_NODE * support**2 * itemsize
-        kept = self.segment_length(steps) * per_step
-        return dataclasses.replace(self, step="recompute_arithmetic" if kept <= self.budget else "recompute")
+        if self.segment is None:          # one segment: no forward pass runs twice
+            if steps * (state_bytes + grid_bytes) <= self.budget:
+                return dataclasses.replace(self, segment=steps, step="recompute_grid")
+            if steps * state_bytes <= self.budget:
+                return dataclasses.replace(self, segment=steps, step="recompute")
+        return dataclasses.replace(self, step="recompute_grid")
 
     def step_checkpoint(self, advance):
         """The per-step wrapper: "recompute" (jax.checkpoint, nothing saved), "store" (none:
@@ -106,6 +107,8 @@ class Checkpointing:
             return jax.checkpoint(advance, prevent_cse=False, policy=arithmetic_recomputed)
         if self.step == "recompute":
             return jax.checkpoint(advance, prevent_cse=False)
+        if self.step == "recompute_grid":
+            return jax.checkpoint(advance, prevent_cse=False, policy=jax.checkpoint_policies.save_only_these_names(KEPT_GRID))
         if self.step.startswith("names:"):
             names = self.step[len("names:"):].split("+")
             policy = jax.checkpoint_policies.save_only_these_names(*names)

@@ -45,12 +45,14 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
 
 from jaxmpm.contact import Interface, resolve_interfaces
 from jaxmpm.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
 )
 from jaxmpm.materials.base import points_update_voigt
+from jaxmpm.rollout import KEPT_GRID
 from jaxmpm.state import Diagnostics, record_errors
 from jaxmpm.tensors import components, entries, from_entries, stack_last
 
@@ -184,7 +186,7 @@ def particles_to_grid(particles, stencil, offsets, field, structure):
             edge: "slip" for edge, kind in dataclasses.asdict(structure.boundaries).items() if kind != "free"
         })
         mass_gradient = fold_ghosts(nodes[..., 5:7], layout, mirror, scalars=0)
-    nodes = fold_ghosts(nodes[..., :5], layout, structure.boundaries)
+    nodes = checkpoint_name(fold_ghosts(nodes[..., :5], layout, structure.boundaries), KEPT_GRID)
     return Nodes(nodes[..., 0], nodes[..., 1:3], nodes[..., 3:5], mass_gradient)
 
 
@@ -443,7 +445,8 @@ def remap_velocity(particles, stencil, field, structure, mass, constrain, floor)
     """MUSL: nodal velocity sum_p m_p v_p N_I / m_I of each field from the updated points."""
     layout = structure.layout
     momentum = scatter_to_nodes(layout, stencil.base, point_momentum(particles, stencil), field, structure.fields)
-    return constrain(safe_velocity(fold_ghosts(momentum, layout, structure.boundaries, scalars=0), mass, floor))
+    momentum = checkpoint_name(fold_ghosts(momentum, layout, structure.boundaries, scalars=0), KEPT_GRID)
+    return constrain(safe_velocity(momentum, mass, floor))
 
 
 def velocity_gradient(stencil, velocity, field, structure, positions):
@@ -489,6 +492,13 @@ def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
         history=tuple(histories),
         volume=particles.volume * stretch,
     )
+
+
+def kept_grid_bytes(structure, itemsize):
+    """Bytes of the node arrays one step names KEPT_GRID: each field's mass, momentum and force
+    (5 values a node) and, with MUSL, its re-mapped momentum (2 more)."""
+    values = 5 + (2 if structure.update == "musl" else 0)
+    return int(np.prod(structure.layout.nodes)) * structure.fields * values * itemsize
 
 
 def contact_forces(structure, impulses, dt):

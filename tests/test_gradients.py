@@ -193,10 +193,12 @@ def one_step_segments():
 
 # 14 steps: segments of 3 (the last one shorter), the default (7, a divisor), one segment
 # (what "auto" picks for this small block, or a segment longer than the run), against one step
-# per segment; each step's elementwise arithmetic recomputed in the backward pass (what "auto"
-# picks), the whole step recomputed, or all its intermediates stored.
+# per segment; each step recomputed but for its node arrays (what "auto" picks), its elementwise
+# arithmetic recomputed in the backward pass, the whole step recomputed, or all its
+# intermediates stored.
 @pytest.mark.parametrize("segment, step", [
-    (3, "auto"), (None, "auto"), (10_000, "auto"), (None, "recompute_arithmetic"), (None, "store"), (None, "recompute"),
+    (3, "auto"), (None, "auto"), (10_000, "auto"), (None, "recompute_grid"), (None, "recompute_arithmetic"),
+    (None, "store"), (None, "recompute"),
 ])
 def test_checkpoint_segments_do_not_change_values_or_gradients(segment, step, one_step_segments):
     sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK), jaxmpm.Checkpointing(segment=segment, step=step))
@@ -206,47 +208,40 @@ def test_checkpoint_segments_do_not_change_values_or_gradients(segment, step, on
     np.testing.assert_allclose(gradient["materials"]["soil"]["young"], gradient_ref["materials"]["soil"]["young"], rtol=1e-10)
 
 
-def test_auto_checkpointing_keeps_states_or_step_intermediates_only_within_its_memory_budget():
-    from jaxmpm.rollout import KEPT_VALUES_PER_STENCIL_NODE, STORE_BUDGET_BYTES
+def test_auto_checkpointing_keeps_states_and_node_arrays_only_within_its_memory_budget():
+    from jaxmpm.rollout import STORE_BUDGET_BYTES as budget
 
-    auto = jaxmpm.Checkpointing()
-    kept = "recompute_arithmetic"
-
-    def state(points, itemsize):       # ~20 values per point: x, v, C_p, the 3 x 3 stress, volume, mass, history
-        return points * 20 * itemsize
-
-    # every step's state fits: one segment, each step run again just before it is differentiated
-    assert auto.resolved(200, 100, 2, 8, state(100, 8)) == jaxmpm.Checkpointing(200, "recompute")
-    assert auto.resolved(200, 5_184, 3, 4, state(5_184, 4)) == jaxmpm.Checkpointing(200, "recompute")    # ~83 MB
+    auto, grid = jaxmpm.Checkpointing(), "recompute_grid"
+    # 200 steps whose states and node arrays fill the budget exactly: one segment, each step run
+    # again in the backward pass but for its particle-to-grid transfers
+    assert auto.resolved(200, budget // 400, budget // 400) == jaxmpm.Checkpointing(200, grid)
+    # a byte more: the states alone still fit, so one segment of steps run again whole
+    assert auto.resolved(200, budget // 400, budget // 400 + 1) == jaxmpm.Checkpointing(200, "recompute")
+    # the states alone do not fit: segments, still keeping each step's node arrays
+    assert auto.resolved(200, budget // 200 + 1, 0) == jaxmpm.Checkpointing(None, grid)
+    assert auto.resolved(10_000, 16_384 * 16 * 4, 17_689 * 7 * 4) == jaxmpm.Checkpointing(None, grid)
+    # rollouts run together (a calibration's starts) share the budget: the same one in segments
+    assert jaxmpm.Checkpointing(budget=budget // 4).resolved(200, budget // 400, 0).segment is None
+    # what the user chose stays
+    assert jaxmpm.Checkpointing(step="recompute_arithmetic").resolved(200, 1, 1) == jaxmpm.Checkpointing(None, "recompute_arithmetic")
+    assert jaxmpm.Checkpointing(segment=10).resolved(200, 1, 1) == jaxmpm.Checkpointing(10, grid)
     with pytest.raises(ValueError, match=r"Checkpointing.budget = '256 MB': give a number of bytes"):
         jaxmpm.Checkpointing(budget="256 MB")
-    # rollouts run together (a calibration's starts) share the budget: the same one in segments
-    assert jaxmpm.Checkpointing(budget=STORE_BUDGET_BYTES // 4).resolved(200, 5_184, 3, 4, state(5_184, 4)).segment is None
-    # they do not: segments, keeping the steps' intermediates when a segment's fit
-    assert auto.resolved(2_000, 5_184, 3, 4, state(5_184, 4)) == jaxmpm.Checkpointing(None, kept)        # ~830 MB of states
-    assert auto.resolved(10_000, 16_384, 3, 4, state(16_384, 4)).step == "recompute"    # segments' intermediates ~1.1 GB
-    assert auto.resolved(1_000, 16_384, 3, 8, state(16_384, 8)) == jaxmpm.Checkpointing(None, "recompute")
-    assert jaxmpm.Checkpointing(step=kept).resolved(200, 100, 2, 8, state(100, 8)) == jaxmpm.Checkpointing(None, kept)
-    assert jaxmpm.Checkpointing(segment=10).resolved(200, 100, 2, 8, state(100, 8)).segment == 10
-    # at the budget's edge: the states of 400 steps, and the intermediates of 20-step segments
-    assert auto.resolved(400, 100, 2, 8, STORE_BUDGET_BYTES // 400).segment == 400
-    assert auto.resolved(400, 100, 2, 8, STORE_BUDGET_BYTES // 400 + 1).segment is None
-    edge = STORE_BUDGET_BYTES // (20 * KEPT_VALUES_PER_STENCIL_NODE * 9 * 4)
-    assert auto.resolved(400, edge, 3, 4, STORE_BUDGET_BYTES).step == kept
-    assert auto.resolved(400, edge + 1, 3, 4, STORE_BUDGET_BYTES).step == "recompute"
 
 
-def test_a_rollout_in_one_segment_keeps_its_states_and_nothing_more():
-    # "auto" on a small scene: one segment whose forward pass keeps each step's state and whose
-    # backward pass runs each step again. The gradient's XLA temporaries are then those states
-    # (steps x state bytes, the memory the budget rule counts), not the steps' intermediates
-    # (~8x more), and not a few segment states.
+def test_a_rollout_in_one_segment_keeps_its_states_and_node_arrays_and_nothing_more():
+    # "auto" on a small scene: one segment whose forward pass keeps each step's state and the
+    # node arrays of its particle-to-grid transfers, and whose backward pass runs the rest of
+    # each step again. The gradient's XLA temporaries are then those (steps x (state + node
+    # array bytes), the memory the budget rule counts), not the steps' intermediates (~5x
+    # more), and not a few segment states.
     from jaxmpm.rollout import state_bytes
+    from jaxmpm.solver import kept_grid_bytes
 
     sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK.replace("duration = 0.01", "duration = 0.1")))   # 140 steps
     initial = sim.initial_state()
-    assert sim.checkpointing_for(initial) == jaxmpm.Checkpointing(sim.steps, "recompute")
-    states = sim.steps * state_bytes(initial)
+    assert sim.checkpointing_for(initial) == jaxmpm.Checkpointing(sim.steps, "recompute_grid")
+    states = sim.steps * (state_bytes(initial) + kept_grid_bytes(sim.structure, initial.particles.x.dtype.itemsize))
     temp = {}
     for step in ("auto", "recompute_arithmetic"):
         kept = jaxmpm.Simulation(sim.scene, jaxmpm.Checkpointing(segment=sim.steps if step != "auto" else None, step=step))
