@@ -76,6 +76,9 @@ def large_case(steps, run):
     return temporary, time.perf_counter() - start, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+LARGE_POLICIES = "one segment of \"recompute_grid\" steps at 200 steps, segments of about sqrt(steps) of them beyond"
+
+
 def large_table(run_longest):
     rows = []
     for steps in LARGE_STEPS:
@@ -85,7 +88,7 @@ def large_table(run_longest):
         print(rows[-1], flush=True)
     return "\n".join([
         "16,384 points of Drucker-Prager sand, bspline2 + APIC, float32 (the 16k block of the throughput "
-        f"table), `Checkpointing(step=\"recompute\")`, measured {datetime.date.today()} (JAX {jax.__version__}, "
+        f"table), the default checkpointing (\"auto\": {LARGE_POLICIES}), measured {datetime.date.today()} (JAX {jax.__version__}, "
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores):",
         "",
         "| steps | XLA temporary memory of the gradient | one gradient run: wall time, process peak RSS |",
