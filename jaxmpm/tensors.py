@@ -220,7 +220,13 @@ def in_plane_rotation(velocity_gradient, dt):
     Q is exactly orthogonal, so stress invariants are preserved to round-off under rigid
     rotation. Q sigma Q^T (`rotate_voigt`) integrates the spin part of the paper's Jaumann
     rate, sigma_dot = sigma_jaumann + sigma omega + (sigma omega)^T."""
-    e = entries(velocity_gradient)
-    a = 0.25 * dt * (e[3] - e[1])
+    a = spin_parameter(velocity_gradient, dt)
     scale = 1.0 / (1.0 + a * a)
     return (1.0 - a * a) * scale, 2.0 * a * scale
+
+
+def spin_parameter(velocity_gradient, dt):
+    """a = dt (L_yx - L_xy) / 4 of (..., 3, 3) velocity gradients: the Hughes-Winget rotation
+    (`in_plane_rotation`) turns by 2 atan(a)."""
+    e = entries(velocity_gradient)
+    return 0.25 * dt * (e[3] - e[1])

@@ -64,10 +64,9 @@ def elastic_trial_adjoint(moduli, stress, velocity_gradient, dt, trial_bar):
     generator, J_yx = 1 = -J_xy): dR/dtheta = J R - R J = [-2 R_xy, 2 R_xy, 0, R_xx - R_yy],
     dtheta/da = 2 / (1 + a^2).
     """
-    grad = tensors.entries(velocity_gradient)
     cos, sin = tensors.in_plane_rotation(velocity_gradient, dt)
     stress_bar = tensors.rotate_voigt_adjoint(trial_bar, cos, sin)
-    a = 0.25 * dt * (grad[3] - grad[1])
+    a = tensors.spin_parameter(velocity_gradient, dt)
     rotated, tb = tensors.rotate_voigt(tensors.voigt(stress), cos, sin), trial_bar
     turning = 2.0 * rotated[3] * (tb[1] - tb[0]) + tb[3] * (rotated[0] - rotated[1])
     a_bar = 2.0 * turning / (1.0 + a * a)
