@@ -28,6 +28,10 @@ RECOMPUTED_PRIMITIVES = frozenset({
 # The name of the node arrays "recompute_grid" keeps (`jax.ad_checkpoint.checkpoint_name`): what
 # the step's particle-to-grid transfers produce (`solver.particles_to_grid`, `remap_velocity`).
 KEPT_GRID = "grid"
+# The name of what a material law remembers of its update for its reverse mode (the root of an
+# implicit equation, e.g. the Perzyna solve: `materials.base.points_update`). "recompute" and
+# "recompute_grid" keep these values, so the step they run again solves nothing.
+KEPT_SOLVES = "solve"
 
 
 def arithmetic_recomputed(primitive, *_, **__):
@@ -56,7 +60,10 @@ class Checkpointing:
     segment of "recompute" steps when the states alone fit: the forward pass keeps every
     step's state and the backward pass runs each step again just before differentiating it,
     so no forward pass runs twice and no intermediate is written to memory and read back;
-    otherwise segments of "recompute_grid" steps);
+    otherwise segments of "recompute_grid" steps). Both keep what a material law remembers
+    for its reverse mode (KEPT_SOLVES, e.g. each viscoplastic point's Perzyna root, one value a
+    point), so the step run again solves no implicit equation: viscoplastic gradients 10-15 %
+    faster (docs/benchmarks.md, 2026-12-04); the budget counts these values with the states;
     "recompute_grid" (the step runs again, all but its two particle-to-grid transfers: their
     node arrays, named KEPT_GRID, are kept. 16,384 points, 200 steps in one segment: gradient
     19 % faster than "recompute" for 46 % more memory; in segments as fast as
@@ -65,9 +72,9 @@ class Checkpointing:
     "recompute_arithmetic" (every intermediate but elementwise arithmetic, which the backward
     recomputes inside its own kernels: gradients 15-30 % faster than "recompute" from 100 to
     16k points, for ~460 bytes per point per step of a segment in float32 with 3 x 3 stencils);
-    "recompute" (nothing, the step runs again); "store" (every intermediate: one forward pass
-    fewer, but reading the stored products back cost more than recomputing them, and 2.5x the
-    memory of "recompute_arithmetic"); "names:stencil" (only the shape-function stencil) or
+    "recompute" (nothing but the laws' remembered values: the step runs again); "store" (every
+    intermediate: one forward pass fewer, but reading the stored products back cost more than
+    recomputing them, and 2.5x the memory of "recompute_arithmetic"); "names:stencil" (only the shape-function stencil) or
     "dots" (JAX's dots_with_no_batch_dims_saveable policy). Measured in docs/benchmarks.md and
     benchmarks/reverse_decomposition.py.
 
@@ -85,8 +92,9 @@ class Checkpointing:
             raise ValueError(f"Checkpointing.budget = {self.budget!r}: give a number of bytes, an int >= 0.")
 
     def resolved(self, steps, state_bytes, grid_bytes):
-        """This policy with "auto" decided for a rollout of `steps` steps whose states take
-        `state_bytes` bytes and whose kept node arrays ("recompute_grid") `grid_bytes` a step."""
+        """This policy with "auto" decided for a rollout of `steps` steps that keeps
+        `state_bytes` bytes a step with "recompute" (its state and the law's remembered values)
+        and `grid_bytes` more with "recompute_grid" (the node arrays)."""
         if self.step != "auto":
             return self
         if self.segment is None:          # one segment: no forward pass runs twice
@@ -106,9 +114,10 @@ class Checkpointing:
         if self.step == "recompute_arithmetic":
             return jax.checkpoint(advance, prevent_cse=False, policy=arithmetic_recomputed)
         if self.step == "recompute":
-            return jax.checkpoint(advance, prevent_cse=False)
+            return jax.checkpoint(advance, prevent_cse=False, policy=jax.checkpoint_policies.save_only_these_names(KEPT_SOLVES))
         if self.step == "recompute_grid":
-            return jax.checkpoint(advance, prevent_cse=False, policy=jax.checkpoint_policies.save_only_these_names(KEPT_GRID))
+            policy = jax.checkpoint_policies.save_only_these_names(KEPT_GRID, KEPT_SOLVES)
+            return jax.checkpoint(advance, prevent_cse=False, policy=policy)
         if self.step.startswith("names:"):
             names = self.step[len("names:"):].split("+")
             policy = jax.checkpoint_policies.save_only_these_names(*names)

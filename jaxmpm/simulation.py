@@ -34,7 +34,7 @@ from jaxmpm.results import FileSnapshots, Result
 from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps, state_bytes, with_evolving_tangents
 from jaxmpm.scene import Scene, body_speed
 from jaxmpm.seeding import padded, seed_bodies
-from jaxmpm.solver import BodyBlock, Structure, evolving_leaves, kept_grid_bytes, make_step
+from jaxmpm.solver import BodyBlock, Structure, evolving_leaves, kept_grid_bytes, kept_solve_bytes, make_step
 from jaxmpm.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
 from jaxmpm.tracing import collector_paused
 
@@ -292,8 +292,10 @@ class Simulation:
 
     def checkpointing_for(self, initial: State) -> Checkpointing:
         """The checkpointing of a probe rollout from `initial`, "auto" decided for its size."""
-        grid_bytes = kept_grid_bytes(self.structure, initial.particles.x.dtype.itemsize)
-        return self.checkpointing.resolved(self.steps, state_bytes(initial), grid_bytes)
+        dtype = initial.particles.x.dtype
+        grid_bytes = kept_grid_bytes(self.structure, dtype.itemsize)
+        solve_bytes = kept_solve_bytes(self.structure, self.params["materials"], dtype)
+        return self.checkpointing.resolved(self.steps, state_bytes(initial) + solve_bytes, grid_bytes)
 
     def _probes_from_state(self, params, initial):
         advance = self._advance_and_observe(params, initial.particles.x)

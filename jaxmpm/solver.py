@@ -501,6 +501,25 @@ def kept_grid_bytes(structure, itemsize):
     return int(np.prod(structure.layout.nodes)) * structure.fields * values * itemsize
 
 
+def kept_solve_bytes(structure, materials, dtype):
+    """Bytes of the values one step names KEPT_SOLVES: what each free body's law remembers of
+    its update for its reverse mode (`update_remembering`; e.g. the Perzyna root), at every
+    point of the body. materials: {material name: parameters} (values or shapes)."""
+    total = 0
+    for block in structure.bodies:
+        law = block.law
+        if block.kinematics != "free" or not hasattr(law, "update_remembering"):
+            continue
+        point_state = jax.tree_util.tree_map(lambda values: values[0], law.init_state(1, dtype))
+        tensor = jax.ShapeDtypeStruct((3, 3), dtype)
+        _, remembered = jax.eval_shape(
+            lambda params, stress, gradient, law=law: law.update_remembering(params, stress, gradient, structure.dt, point_state),
+            materials[block.material_name], tensor, tensor)
+        per_point = sum(np.prod(leaf.shape, dtype=int) * np.dtype(leaf.dtype).itemsize for leaf in jax.tree_util.tree_leaves(remembered))
+        total += (block.stop - block.start) * int(per_point)
+    return total
+
+
 def contact_forces(structure, impulses, dt):
     """{pair name: (2,) force of the pair's first body on its second [N/m]} from the impulses
     of the contact interfaces (an interface's impulse J acts on its `first` field)."""

@@ -208,6 +208,45 @@ def test_checkpoint_segments_do_not_change_values_or_gradients(segment, step, on
     np.testing.assert_allclose(gradient["materials"]["soil"]["young"], gradient_ref["materials"]["soil"]["young"], rtol=1e-10)
 
 
+VISCOPLASTIC_BLOCK = BLOCK.replace(
+    'model = "linear_elastic"', 'model = "drucker_prager"\nfriction_angle = 20.0\nfluidity = 20.0\nexponent = 2.0',
+).replace("duration = 0.01", "duration = 0.03")
+
+
+def test_recomputed_steps_keep_the_perzyna_roots_instead_of_solving_again():
+    # rollout.KEPT_SOLVES: "recompute" and "recompute_grid" keep each point's Perzyna root
+    # from the forward pass, so the compiled gradient holds the Newton loop of the forward
+    # pass only, not a second one in the step its backward pass runs again (viscoplastic
+    # gradients 10-15 % faster). The gradient is that of the rollout storing everything.
+    # The released block yields at every point, so the viscoplastic return is what is
+    # differentiated.
+    results = {}
+    for step in ("store", "recompute", "recompute_grid"):
+        sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(VISCOPLASTIC_BLOCK), jaxmpm.Checkpointing(segment=10**6, step=step))
+        compiled = jax.jit(jax.value_and_grad(lambda p, sim=sim: settlement_measure(sim, p))).lower(sim.params).compile()
+        newton_loops = [line for line in compiled.as_text().splitlines() if " while(" in line and "update_stress" in line]
+        assert len(newton_loops) == 1, (step, len(newton_loops))
+        results[step] = compiled(sim.params)
+    assert np.all(np.asarray(sim.final_state().particles.history[0]["plastic_strain"]) > 0.0)
+    # "auto"'s budget counts the kept roots (one value a point and step) with the states
+    from jaxmpm.rollout import state_bytes
+    from jaxmpm.solver import kept_grid_bytes, kept_solve_bytes
+
+    initial = sim.initial_state()
+    itemsize = initial.particles.x.dtype.itemsize
+    assert kept_solve_bytes(sim.structure, sim.params["materials"], initial.particles.x.dtype) == sim.point_count * itemsize
+    without_roots = sim.steps * (state_bytes(initial) + kept_grid_bytes(sim.structure, itemsize))
+    for budget, chosen in ((without_roots + sim.steps * sim.point_count * itemsize, "recompute_grid"), (without_roots, "recompute")):
+        tight = jaxmpm.Simulation(sim.scene, jaxmpm.Checkpointing(budget=budget))
+        assert tight.checkpointing_for(initial).step == chosen
+    value_ref, gradient_ref = results["store"]
+    for step in ("recompute", "recompute_grid"):
+        value, gradient = results[step]
+        np.testing.assert_allclose(value, value_ref, rtol=1e-12)
+        for name in ("fluidity", "friction_angle", "exponent"):
+            np.testing.assert_allclose(gradient["materials"]["soil"][name], gradient_ref["materials"]["soil"][name], rtol=1e-10)
+
+
 def test_auto_checkpointing_keeps_states_and_node_arrays_only_within_its_memory_budget():
     from jaxmpm.rollout import STORE_BUDGET_BYTES as budget
 

@@ -25,9 +25,11 @@ import functools
 
 import jax
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 
 from jaxmpm.adjoints import hand_reversed
 from jaxmpm.keys import Key, check_value
+from jaxmpm.rollout import KEPT_SOLVES
 from jaxmpm.tensors import components, from_voigt, stack_last, voigt
 
 
@@ -89,8 +91,10 @@ def points_update(law, dt):
     unchanged. A law may remember values of its forward pass for the adjoint
     (`update_remembering(params, stress, L, dt, state, remembered=None) -> ((stress, state),
     remembered)`, e.g. the root of the Perzyna equation), which then need not compute them
-    again; forward mode calls it with `shared_once=True`, where the law computes once the values
-    its outputs' tangents share."""
+    again; they are named KEPT_SOLVES, so a checkpointed step keeps them and its recomputation
+    does not solve again (viscoplastic gradients 10-15 % faster; docs/benchmarks.md,
+    2026-12-04). Forward mode calls it with `shared_once=True`, where the law computes once the
+    values its outputs' tangents share."""
     def plain(params, stress, velocity_gradient, state):
         return jax.vmap(law.update, in_axes=(None, 0, 0, None, 0))(params, stress, velocity_gradient, dt, state)
 
@@ -101,7 +105,8 @@ def points_update(law, dt):
         if not hasattr(law, "update_remembering"):
             return plain(params, stress, velocity_gradient, state), ()
         one_point = traced_once(law, dt, "update_remembering", shared_once=shared_once)
-        return jax.vmap(one_point, in_axes=(None, 0, 0, 0, 0))(params, stress, velocity_gradient, state, remembered)
+        updated, remembered = jax.vmap(one_point, in_axes=(None, 0, 0, 0, 0))(params, stress, velocity_gradient, state, remembered)
+        return updated, jax.tree_util.tree_map(lambda value: checkpoint_name(value, KEPT_SOLVES), remembered)
 
     keeps_history = getattr(law, "keeps_history", False)
 
