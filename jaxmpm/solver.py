@@ -464,8 +464,9 @@ def velocity_gradient(stencil, velocity, field, structure, positions):
 
 
 def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
-    """Each free body's material updates its own slice; volumes follow det(I + dt L).
-    Prescribed and rigid bodies keep their stress and volume."""
+    """Each run of free bodies of one material (`material_runs`) updates its points with the
+    material's law; volumes follow det(I + dt L). Prescribed and rigid bodies keep their stress
+    and volume."""
     stresses, histories, stretches = [], [], []
     # det(I + dt L), written out (cheaper than an LU per point): the in-plane 2x2 block times
     # the hoop stretch 1 + dt L_tt (which is 1 in plane strain, where L_tt = 0)
@@ -473,17 +474,20 @@ def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
     stretch = (1.0 + dt * rate[0]) * (1.0 + dt * rate[4]) - dt * dt * rate[1] * rate[3]
     if axisymmetric:
         stretch = stretch * (1.0 + dt * rate[8])
-    for block, history in zip(bodies, particles.history):
-        points = block.points
-        if block.kinematics != "free":
+    for run in material_runs(bodies):
+        first, last = bodies[run[0]], bodies[run[-1]]
+        points = slice(first.start, last.stop)
+        run_histories = [particles.history[index] for index in run]
+        if first.kinematics != "free":
             stresses.append(particles.stress_voigt[points])
-            histories.append(history)
+            histories.extend(run_histories)
             stretches.append(jnp.ones_like(stretch[points]))
             continue
-        update = points_update_voigt(block.law, dt)
-        stress, history = update(params[block.material_name], particles.stress_voigt[points], gradient[points], history)
+        update = points_update_voigt(first.law, dt)
+        stress, history = update(params[first.material_name], particles.stress_voigt[points], gradient[points],
+                                 joined(run_histories))
         stresses.append(stress)
-        histories.append(history)
+        histories.extend(split_at(history, [bodies[index].stop - first.start for index in run[:-1]]))
         stretches.append(stretch[points])
     if any(block.kinematics != "free" for block in bodies):
         stretch = jnp.concatenate(stretches)
@@ -492,6 +496,39 @@ def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
         history=tuple(histories),
         volume=particles.volume * stretch,
     )
+
+
+def material_runs(bodies):
+    """The bodies' indices in runs: consecutive free bodies of one material share a run (one
+    update of their points, so the law is compiled once for them: the wall twin example's
+    foundation and backfill; its gradient compiled 17 % faster, docs/benchmarks.md,
+    2026-12-04); any other body is a run of its own."""
+    runs = []
+    for index, block in enumerate(bodies):
+        previous = bodies[index - 1] if index else None
+        shared = (previous is not None and block.kinematics == previous.kinematics == "free"
+                  and block.material_name == previous.material_name)
+        if shared:
+            runs[-1].append(index)
+        else:
+            runs.append([index])
+    return runs
+
+
+def joined(histories):
+    """One history of the points of several bodies of one law (their arrays end to end)."""
+    if len(histories) == 1:
+        return histories[0]
+    return jax.tree_util.tree_map(lambda *parts: jnp.concatenate(parts), *histories)
+
+
+def split_at(history, cuts):
+    """`joined` undone: the histories of the points before, between and after `cuts`."""
+    if not cuts:
+        return [history]
+    leaves, tree = jax.tree_util.tree_flatten(history)
+    pieces = [jnp.split(leaf, cuts) for leaf in leaves]
+    return [tree.unflatten([piece[part] for piece in pieces]) for part in range(len(cuts) + 1)]
 
 
 def kept_grid_bytes(structure, itemsize):

@@ -104,9 +104,9 @@ def test_derivatives_differentiate_the_step_once(mode, monkeypatch):
     # JAX finds which leaves of a scan's carry have tangents by differentiating the step, and
     # again whenever a step gives a new leaf one (positions, velocities, histories: all zero
     # at t = 0 with respect to a material parameter). The rollout marks the leaves the step
-    # changes (solver.evolving_leaves), so once is enough: on the wall twin (two sand bodies,
-    # a rigid wall, two contact pairs, checkpointed segments) the stress update's tangent
-    # (`shared_once`) is asked for once per sand body. Without the marks, twice.
+    # changes (solver.evolving_leaves), so once is enough: on the wall twin (two sand bodies
+    # updated together, `solver.material_runs`; a rigid wall, two contact pairs) the stress
+    # update's tangent (`shared_once`) is asked for once. Without the marks, twice.
     from jaxmpm.materials import base
 
     tangents = []
@@ -118,13 +118,13 @@ def test_derivatives_differentiate_the_step_once(mode, monkeypatch):
 
     monkeypatch.setattr(base, "traced_once", counting)
     jax.make_jaxpr(wall_twin_derivative(mode))(30.0)
-    assert len(tangents) == 2
+    assert len(tangents) == 1
 
 
-def wall_twin_derivative(mode):
-    """d/d(friction angle) of the summed probe histories of the wall twin example: `jax.grad`
-    ("reverse") or `jax.jvp` ("forward")."""
-    sim = jaxmpm.Simulation(jaxmpm.load_scene(EXAMPLES / "calibrate_wall_scene.toml"))
+def wall_twin_derivative(mode, scene=None):
+    """d/d(friction angle) of the summed probe histories of the wall twin example (or `scene`):
+    `jax.grad` ("reverse") or `jax.jvp` ("forward")."""
+    sim = jaxmpm.Simulation(scene or jaxmpm.load_scene(EXAMPLES / "calibrate_wall_scene.toml"))
 
     def misfit(friction):
         probes = sim.probes(jaxmpm.with_values(sim.params, {"sand.friction_angle": friction}))
@@ -135,12 +135,21 @@ def wall_twin_derivative(mode):
 
 def test_a_gradient_traces_the_stress_update_once_per_kind_of_pass(monkeypatch):
     # materials.base.traced_once: the one-point update is jitted and kept, so its traces are
-    # shared between bodies and passes. A gradient of the wall twin traced it six times (two
-    # sand bodies x the forward pass, the derivative's recomputation of it, the tangent); now
-    # the tangent once for both bodies, and the forward pass once or twice (JAX keys its
-    # trace cache on the context too).
+    # shared between bodies and passes. The wall twin with its backfill made of a second sand
+    # (the same law, so the two bodies are updated apart): a gradient traced the update six
+    # times (two sand bodies x the forward pass, the derivative's recomputation of it, the
+    # tangent); now the tangent once for both bodies, and the forward pass once or twice (JAX
+    # keys its trace cache on the context too).
+    import dataclasses
+
     from jaxmpm.materials import base
     from jaxmpm.materials.drucker_prager import DruckerPragerLaw
+
+    scene = jaxmpm.load_scene(EXAMPLES / "calibrate_wall_scene.toml")
+    backfill = next(body for body in scene.bodies if body.name == "backfill")
+    scene = dataclasses.replace(
+        scene, materials={**scene.materials, "backfill_sand": scene.materials["sand"]},
+        bodies=tuple(dataclasses.replace(body, material="backfill_sand") if body is backfill else body for body in scene.bodies))
 
     traces = []
     update = DruckerPragerLaw.update_remembering
@@ -152,7 +161,7 @@ def test_a_gradient_traces_the_stress_update_once_per_kind_of_pass(monkeypatch):
     monkeypatch.setattr(DruckerPragerLaw, "update_remembering", counting)
     base.traced_once.cache_clear()          # traces of other tests kept in it
     try:
-        jax.make_jaxpr(wall_twin_derivative("reverse"))(30.0)
+        jax.make_jaxpr(wall_twin_derivative("reverse", scene))(30.0)
     finally:
         base.traced_once.cache_clear()      # none traced through the counting update stays
     assert traces.count(True) == 1 and traces.count(False) <= 2
