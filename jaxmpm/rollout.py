@@ -28,6 +28,10 @@ RECOMPUTED_PRIMITIVES = frozenset({
 # The name of the node arrays "recompute_grid" keeps (`jax.ad_checkpoint.checkpoint_name`): what
 # the step's particle-to-grid transfers produce (`solver.particles_to_grid`, `remap_velocity`).
 KEPT_GRID = "grid"
+# The name of the points' velocity gradients "recompute_grid" keeps with 3 x 3 stencils
+# (`solver.velocity_gradient`): recomputed, XLA formed them twice, once per layout its readers
+# asked for, each time from the 9 gathered node velocities of a point.
+KEPT_RATE = "rate"
 # The name of what a material law remembers of its update for its reverse mode (the root of an
 # implicit equation, e.g. the Perzyna solve: `materials.base.points_update`). "recompute" and
 # "recompute_grid" keep these values, so the step they run again solves nothing.
@@ -67,8 +71,10 @@ class Checkpointing:
     "recompute_grid" (the step runs again, all but its two particle-to-grid transfers: their
     node arrays, named KEPT_GRID, are kept. 16,384 points, 200 steps in one segment: gradient
     19 % faster than "recompute" for 46 % more memory; in segments as fast as
-    "recompute_arithmetic" or up to 10 % faster, for a third of its memory;
-    docs/benchmarks.md, 2026-12-04);
+    "recompute_arithmetic" or up to 10 % faster, for a third of its memory. With 3 x 3
+    stencils (gimp, bspline2) the points' velocity gradients (KEPT_RATE) are kept too:
+    gradients 3-10 % faster for 4 values a point, where with 2 x 2 stencils they ran up to
+    6 % slower; docs/benchmarks.md, 2026-12-04);
     "recompute_arithmetic" (every intermediate but elementwise arithmetic, which the backward
     recomputes inside its own kernels: gradients 15-30 % faster than "recompute" from 100 to
     16k points, for ~460 bytes per point per step of a segment in float32 with 3 x 3 stencils);
@@ -116,7 +122,7 @@ class Checkpointing:
         if self.step == "recompute":
             return jax.checkpoint(advance, prevent_cse=False, policy=jax.checkpoint_policies.save_only_these_names(KEPT_SOLVES))
         if self.step == "recompute_grid":
-            policy = jax.checkpoint_policies.save_only_these_names(KEPT_GRID, KEPT_SOLVES)
+            policy = jax.checkpoint_policies.save_only_these_names(KEPT_GRID, KEPT_RATE, KEPT_SOLVES)
             return jax.checkpoint(advance, prevent_cse=False, policy=policy)
         if self.step.startswith("names:"):
             names = self.step[len("names:"):].split("+")

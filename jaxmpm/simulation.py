@@ -293,7 +293,7 @@ class Simulation:
     def checkpointing_for(self, initial: State) -> Checkpointing:
         """The checkpointing of a probe rollout from `initial`, "auto" decided for its size."""
         dtype = initial.particles.x.dtype
-        grid_bytes = kept_grid_bytes(self.structure, dtype.itemsize)
+        grid_bytes = kept_grid_bytes(self.structure, self.point_count, dtype.itemsize)
         solve_bytes = kept_solve_bytes(self.structure, self.params["materials"], dtype)
         return self.checkpointing.resolved(self.steps, state_bytes(initial) + solve_bytes, grid_bytes)
 

@@ -52,7 +52,7 @@ from jaxmpm.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
 )
 from jaxmpm.materials.base import points_update_voigt
-from jaxmpm.rollout import KEPT_GRID
+from jaxmpm.rollout import KEPT_GRID, KEPT_RATE
 from jaxmpm.state import Diagnostics, record_errors
 from jaxmpm.tensors import components, entries, from_entries, stack_last
 
@@ -460,7 +460,16 @@ def velocity_gradient(stencil, velocity, field, structure, positions):
     hoop = zero
     if structure.axisymmetric:
         hoop = sum_over_stencil(stencil.weights * nodal[..., 0]) / point_radius(positions, structure)
+    if keeps_velocity_gradient(structure):
+        in_plane = [checkpoint_name(rate, KEPT_RATE) for rate in in_plane]
+        hoop = checkpoint_name(hoop, KEPT_RATE) if structure.axisymmetric else hoop
     return from_entries([in_plane[0], in_plane[1], zero, in_plane[2], in_plane[3], zero, zero, zero, hoop])
+
+
+def keeps_velocity_gradient(structure):
+    """Whether "recompute_grid" keeps the points' velocity gradients (KEPT_RATE): with 3 x 3
+    stencils, whose recomputation reads 9 node velocities a point."""
+    return structure.layout.shape.support == 3
 
 
 def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
@@ -531,11 +540,15 @@ def split_at(history, cuts):
     return [tree.unflatten([piece[part] for piece in pieces]) for part in range(len(cuts) + 1)]
 
 
-def kept_grid_bytes(structure, itemsize):
-    """Bytes of the node arrays one step names KEPT_GRID: each field's mass, momentum and force
-    (5 values a node) and, with MUSL, its re-mapped momentum (2 more)."""
+def kept_grid_bytes(structure, points, itemsize):
+    """Bytes one step of `points` points keeps under "recompute_grid" beyond its state: the node
+    arrays it names KEPT_GRID, each field's mass, momentum and force (5 values a node) and,
+    with MUSL, its re-mapped momentum (2 more); and the velocity gradients it names KEPT_RATE
+    (4 values a point, 5 in axisymmetry; `keeps_velocity_gradient`)."""
     values = 5 + (2 if structure.update == "musl" else 0)
-    return int(np.prod(structure.layout.nodes)) * structure.fields * values * itemsize
+    nodes = int(np.prod(structure.layout.nodes)) * structure.fields * values
+    rates = points * (5 if structure.axisymmetric else 4) if keeps_velocity_gradient(structure) else 0
+    return (nodes + rates) * itemsize
 
 
 def kept_solve_bytes(structure, materials, dtype):

@@ -244,7 +244,7 @@ def test_recomputed_steps_keep_the_perzyna_roots_instead_of_solving_again():
     initial = sim.initial_state()
     itemsize = initial.particles.x.dtype.itemsize
     assert kept_solve_bytes(sim.structure, sim.params["materials"], initial.particles.x.dtype) == sim.point_count * itemsize
-    without_roots = sim.steps * (state_bytes(initial) + kept_grid_bytes(sim.structure, itemsize))
+    without_roots = sim.steps * (state_bytes(initial) + kept_grid_bytes(sim.structure, sim.point_count, itemsize))
     for budget, chosen in ((without_roots + sim.steps * sim.point_count * itemsize, "recompute_grid"), (without_roots, "recompute")):
         tight = jaxmpm.Simulation(sim.scene, jaxmpm.Checkpointing(budget=budget))
         assert tight.checkpointing_for(initial).step == chosen
@@ -289,7 +289,7 @@ def test_a_rollout_in_one_segment_keeps_its_states_and_node_arrays_and_nothing_m
     sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK.replace("duration = 0.01", "duration = 0.1")))   # 140 steps
     initial = sim.initial_state()
     assert sim.checkpointing_for(initial) == jaxmpm.Checkpointing(sim.steps, "recompute_grid")
-    states = sim.steps * (state_bytes(initial) + kept_grid_bytes(sim.structure, initial.particles.x.dtype.itemsize))
+    states = sim.steps * (state_bytes(initial) + kept_grid_bytes(sim.structure, sim.point_count, initial.particles.x.dtype.itemsize))
     temp = {}
     for step in ("auto", "recompute_arithmetic"):
         kept = jaxmpm.Simulation(sim.scene, jaxmpm.Checkpointing(segment=sim.steps if step != "auto" else None, step=step))
@@ -297,6 +297,26 @@ def test_a_rollout_in_one_segment_keeps_its_states_and_node_arrays_and_nothing_m
         temp[step] = compiled.memory_analysis().temp_size_in_bytes
     assert 0.5 * states <= temp["auto"] <= 1.5 * states, (temp, states)
     assert temp["recompute_arithmetic"] > 3 * temp["auto"], temp
+
+
+@pytest.mark.parametrize("shape", ["linear", "bspline2"])
+def test_recompute_grid_keeps_the_velocity_gradients_of_3x3_stencils_and_counts_them(shape):
+    # solver.keeps_velocity_gradient: with a 3 x 3 stencil "recompute_grid" keeps each point's
+    # four in-plane velocity-gradient entries (KEPT_RATE) on top of the node arrays; with 2 x 2
+    # stencils it does not. The XLA temporaries beyond those of the same rollout keeping only
+    # the node arrays are what the budget rule counts for them (kept_grid_bytes).
+    from jaxmpm.solver import kept_grid_bytes
+
+    scene = jaxmpm.Scene.from_toml(BLOCK.replace("duration = 0.01", "duration = 0.1").replace('shape = "linear"', f'shape = "{shape}"'))
+    temp = {}
+    for step in ("recompute_grid", "names:grid+solve"):
+        sim = jaxmpm.Simulation(scene, jaxmpm.Checkpointing(segment=10**6, step=step))
+        compiled = jax.jit(jax.grad(lambda p, sim=sim: settlement_measure(sim, p))).lower(sim.params).compile()
+        temp[step] = compiled.memory_analysis().temp_size_in_bytes
+    itemsize = sim.initial_state().particles.x.dtype.itemsize
+    counted = sim.steps * (kept_grid_bytes(sim.structure, sim.point_count, itemsize) - kept_grid_bytes(sim.structure, 0, itemsize))
+    assert counted == (sim.steps * sim.point_count * 4 * itemsize if shape == "bspline2" else 0)
+    assert temp["recompute_grid"] - temp["names:grid+solve"] == pytest.approx(counted, rel=0.01, abs=1024)
 
 
 def test_reverse_mode_jit_drops_library_reductions_and_keeps_the_gradient():
