@@ -54,7 +54,7 @@ from jaxmpm.grid import (
 from jaxmpm.materials.base import points_update_voigt
 from jaxmpm.rollout import KEPT_GRID, KEPT_RATE
 from jaxmpm.state import Diagnostics, record_errors
-from jaxmpm.tensors import components, entries, from_entries, stack_last
+from jaxmpm.tensors import components, entries, from_entries, materialized, stack_last
 
 MASS_FLOOR = 1e-10   # nodes lighter than this fraction of the heaviest point count as empty
 
@@ -613,6 +613,11 @@ def make_step(structure: Structure):
             return apply_edge_conditions(velocity, mask, layout, structure.boundaries)
 
         floor = MASS_FLOOR * jnp.max(particles.mass)
+        # The positions computed into memory once (`materialized`): the backward pass reads each
+        # step's positions from the stack of kept states, and XLA fused that read (a dynamic
+        # slice) into each shape-function kernel, which then ran ~5x slower than in the forward
+        # pass (gradients 3-9 % faster, docs/benchmarks.md, 2026-12-04).
+        particles = particles.replace(x=materialized(particles.x))
         stencil = jax.named_call(layout.stencil, name="shape_functions")(particles.x)
         offsets = None
         if structure.transfer == "apic":

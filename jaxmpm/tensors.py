@@ -74,8 +74,8 @@ def materialized(values):
     predicate is always true (`through_conditional`). Used where it measured faster
     (docs/benchmarks.md, 2026-12-03 and 12-04): the node arrays the gathers read (linear
     shapes: forward 25-30 % faster, gradient up to 20 %), the 1-D shape-function factors of
-    the 3 x 3 stencils (gimp forward 40 % faster) and the Drucker-Prager adjoint's trial
-    cotangent. Exactly the identity in value and derivatives. Under `vmap` (the points of a
+    the 3 x 3 stencils (gimp forward 40 % faster), the Drucker-Prager adjoint's trial
+    cotangent and each step's positions. Exactly the identity in value and derivatives. Under `vmap` (the points of a
     stress update, calibration starts, ensembles) the batch goes through one conditional
     (`custom_vmap`): JAX's own rule would batch the predicate and make the cond a select,
     the same values without the gain (a gradient under a vmap of one ran 16-19 % slower). The
