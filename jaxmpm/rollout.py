@@ -66,7 +66,7 @@ class Checkpointing:
     so no forward pass runs twice and no intermediate is written to memory and read back;
     otherwise segments of "recompute_grid" steps). Both keep what a material law remembers
     for its reverse mode (KEPT_SOLVES, e.g. each viscoplastic point's Perzyna root, one value a
-    point), so the step run again solves no implicit equation: viscoplastic gradients 10-15 %
+    point), so the step run again solves no implicit equation: viscoplastic gradients 11-16 %
     faster (docs/benchmarks.md, 2026-12-04); the budget counts these values with the states;
     "recompute_grid" (the step runs again, all but its two particle-to-grid transfers: their
     node arrays, named KEPT_GRID, are kept. 16,384 points, 200 steps in one segment: gradient
@@ -80,8 +80,8 @@ class Checkpointing:
     16k points, for ~460 bytes per point per step of a segment in float32 with 3 x 3 stencils);
     "recompute" (nothing but the laws' remembered values: the step runs again); "store" (every
     intermediate: one forward pass fewer, but reading the stored products back cost more than
-    recomputing them, and 2.5x the memory of "recompute_arithmetic"); "names:stencil" (only the shape-function stencil) or
-    "dots" (JAX's dots_with_no_batch_dims_saveable policy). Measured in docs/benchmarks.md and
+    recomputing them, and 2.5x the memory of "recompute_arithmetic"); "names:stencil" (only
+    the shape-function stencil) or "dots" (JAX's dots_with_no_batch_dims_saveable policy). Measured in docs/benchmarks.md and
     benchmarks/reverse_decomposition.py.
 
     budget: the bytes "auto" lets one rollout keep (default STORE_BUDGET_BYTES). Rollouts run
@@ -120,7 +120,8 @@ class Checkpointing:
         if self.step == "recompute_arithmetic":
             return jax.checkpoint(advance, prevent_cse=False, policy=arithmetic_recomputed)
         if self.step == "recompute":
-            return jax.checkpoint(advance, prevent_cse=False, policy=jax.checkpoint_policies.save_only_these_names(KEPT_SOLVES))
+            policy = jax.checkpoint_policies.save_only_these_names(KEPT_SOLVES)
+            return jax.checkpoint(advance, prevent_cse=False, policy=policy)
         if self.step == "recompute_grid":
             policy = jax.checkpoint_policies.save_only_these_names(KEPT_GRID, KEPT_RATE, KEPT_SOLVES)
             return jax.checkpoint(advance, prevent_cse=False, policy=policy)

@@ -40,6 +40,7 @@ what probes read beyond the points (contact forces, reactions).
 """
 
 import dataclasses
+import math
 from typing import NamedTuple
 
 import jax
@@ -562,10 +563,11 @@ def kept_solve_bytes(structure, materials, dtype):
             continue
         point_state = jax.tree_util.tree_map(lambda values: values[0], law.init_state(1, dtype))
         tensor = jax.ShapeDtypeStruct((3, 3), dtype)
-        _, remembered = jax.eval_shape(
-            lambda params, stress, gradient, law=law: law.update_remembering(params, stress, gradient, structure.dt, point_state),
-            materials[block.material_name], tensor, tensor)
-        per_point = sum(np.prod(leaf.shape, dtype=int) * np.dtype(leaf.dtype).itemsize for leaf in jax.tree_util.tree_leaves(remembered))
+        def one_point(params, stress, gradient, law=law, point_state=point_state):
+            return law.update_remembering(params, stress, gradient, structure.dt, point_state)[1]
+
+        remembered = jax.eval_shape(one_point, materials[block.material_name], tensor, tensor)
+        per_point = sum(math.prod(leaf.shape) * np.dtype(leaf.dtype).itemsize for leaf in jax.tree_util.tree_leaves(remembered))
         total += (block.stop - block.start) * int(per_point)
     return total
 

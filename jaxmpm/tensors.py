@@ -75,10 +75,10 @@ def materialized(values):
     (docs/benchmarks.md, 2026-12-03 and 12-04): the node arrays the gathers read (linear
     shapes: forward 25-30 % faster, gradient up to 20 %), the 1-D shape-function factors of
     the 3 x 3 stencils (gimp forward 40 % faster), the Drucker-Prager adjoint's trial
-    cotangent and each step's positions. Exactly the identity in value and derivatives. Under `vmap` (the points of a
-    stress update, calibration starts, ensembles) the batch goes through one conditional
-    (`custom_vmap`): JAX's own rule would batch the predicate and make the cond a select,
-    the same values without the gain (a gradient under a vmap of one ran 16-19 % slower). The
+    cotangent and each step's positions. Exactly the identity in value and derivatives. Under
+    `vmap` (the points of a stress update, calibration starts, ensembles) the batch goes
+    through one conditional (`custom_vmap`): JAX's own rule would batch the predicate and
+    make the cond a select, the same values without the gain (a gradient under a vmap of one ran 16-19 % slower). The
     tangent is materialized too, as a linear map that is its own transpose, since a
     `custom_vmap` function has no reverse mode of its own."""
     return conditional_kept_under_vmap(values)

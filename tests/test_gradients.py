@@ -226,7 +226,7 @@ def test_recomputed_steps_keep_the_perzyna_roots_instead_of_solving_again():
     # rollout.KEPT_SOLVES: "recompute" and "recompute_grid" keep each point's Perzyna root
     # from the forward pass, so the compiled gradient holds the Newton loop of the forward
     # pass only, not a second one in the step its backward pass runs again (viscoplastic
-    # gradients 10-15 % faster). The gradient is that of the rollout storing everything.
+    # gradients 11-16 % faster). The gradient is that of the rollout storing everything.
     # The released block yields at every point, so the viscoplastic return is what is
     # differentiated.
     results = {}

@@ -92,7 +92,7 @@ def points_update(law, dt):
     (`update_remembering(params, stress, L, dt, state, remembered=None) -> ((stress, state),
     remembered)`, e.g. the root of the Perzyna equation), which then need not compute them
     again; they are named KEPT_SOLVES, so a checkpointed step keeps them and its recomputation
-    does not solve again (viscoplastic gradients 10-15 % faster; docs/benchmarks.md,
+    does not solve again (viscoplastic gradients 11-16 % faster; docs/benchmarks.md,
     2026-12-04). Forward mode calls it with `shared_once=True`, where the law computes once the
     values its outputs' tangents share."""
     def plain(params, stress, velocity_gradient, state):
@@ -105,7 +105,8 @@ def points_update(law, dt):
         if not hasattr(law, "update_remembering"):
             return plain(params, stress, velocity_gradient, state), ()
         one_point = traced_once(law, dt, "update_remembering", shared_once=shared_once)
-        updated, remembered = jax.vmap(one_point, in_axes=(None, 0, 0, 0, 0))(params, stress, velocity_gradient, state, remembered)
+        points = jax.vmap(one_point, in_axes=(None, 0, 0, 0, 0))
+        updated, remembered = points(params, stress, velocity_gradient, state, remembered)
         return updated, jax.tree_util.tree_map(lambda value: checkpoint_name(value, KEPT_SOLVES), remembered)
 
     keeps_history = getattr(law, "keeps_history", False)
