@@ -81,8 +81,8 @@ class Checkpointing:
     "recompute" (nothing but the laws' remembered values: the step runs again); "store" (every
     intermediate: one forward pass fewer, but reading the stored products back cost more than
     recomputing them, and 2.5x the memory of "recompute_arithmetic"); "names:stencil" (only
-    the shape-function stencil) or "dots" (JAX's dots_with_no_batch_dims_saveable policy). Measured in docs/benchmarks.md and
-    benchmarks/reverse_decomposition.py.
+    the shape-function stencil) or "dots" (JAX's dots_with_no_batch_dims_saveable policy).
+    Measured in docs/benchmarks.md and benchmarks/reverse_decomposition.py.
 
     budget: the bytes "auto" lets one rollout keep (default STORE_BUDGET_BYTES). Rollouts run
     together under vmap (a calibration's starts, experiments sharing a scene) each keep their

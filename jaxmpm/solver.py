@@ -563,6 +563,7 @@ def kept_solve_bytes(structure, materials, dtype):
             continue
         point_state = jax.tree_util.tree_map(lambda values: values[0], law.init_state(1, dtype))
         tensor = jax.ShapeDtypeStruct((3, 3), dtype)
+
         def one_point(params, stress, gradient, law=law, point_state=point_state):
             return law.update_remembering(params, stress, gradient, structure.dt, point_state)[1]
 

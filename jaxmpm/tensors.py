@@ -78,9 +78,9 @@ def materialized(values):
     cotangent and each step's positions. Exactly the identity in value and derivatives. Under
     `vmap` (the points of a stress update, calibration starts, ensembles) the batch goes
     through one conditional (`custom_vmap`): JAX's own rule would batch the predicate and
-    make the cond a select, the same values without the gain (a gradient under a vmap of one ran 16-19 % slower). The
-    tangent is materialized too, as a linear map that is its own transpose, since a
-    `custom_vmap` function has no reverse mode of its own."""
+    make the cond a select, the same values without the gain (a gradient under a vmap of one
+    ran 16-19 % slower). The tangent is materialized too, as a linear map that is its own
+    transpose, since a `custom_vmap` function has no reverse mode of its own."""
     return conditional_kept_under_vmap(values)
 
 
