@@ -291,11 +291,11 @@ the median steady call. For the rows with a gradient, the ratio is the best time
 jitted `jax.grad(loss)` (compiled as jaxmpm compiles its own reverse-mode work, YNNPACK
 fusions off) over the best of `jax.jit(loss)`, where loss(E) sums two probe histories of
 `Simulation.probes` over a {GRADIENT_STEPS}-step rollout (default checkpointing: one segment
-when every step's state and the node arrays of its particle-to-grid transfers fit in 512 MB,
-the float32 rows up to 16,384 points, whose backward pass runs each step again but for those
-transfers; one segment of steps run again whole when the states alone fit, the 16,384-point
-float64 row; otherwise segments of about sqrt(steps) steps keeping their node arrays, so the
-gradient runs the forward step twice and the backward step once). Each case runs in a fresh process: peak RSS is `getrusage`
+when every step's state and the node arrays of its particle-to-grid transfers fit in 2 GiB,
+every row here on this machine, whose backward pass runs each step again but for those
+transfers; otherwise one segment of steps run again whole when the states alone fit, or
+segments of about sqrt(steps) steps keeping their node arrays, so the gradient runs the
+forward step twice and the backward step once). Each case runs in a fresh process: peak RSS is `getrusage`
 maxrss after the forward runs and after the gradient runs (including the ~0.3 GB of the Python
 and JAX runtime and of compilation); XLA temp is the compiled gradient's
 `memory_analysis().temp_size_in_bytes`. float32 cases run without JAX's 64-bit mode, float64

@@ -48,6 +48,14 @@ def estimate_bytes(scene, steps: int) -> dict:
     }
 
 
+def physical_bytes() -> float:
+    """The machine's physical memory (inf where the system does not say)."""
+    try:
+        return float(os.sysconf("SC_PHYS_PAGES")) * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return math.inf
+
+
 def available_bytes() -> float:
     """Memory the system reports available (Linux MemAvailable), else physical memory."""
     try:
@@ -57,10 +65,7 @@ def available_bytes() -> float:
                     return float(line.split()[1]) * 1024.0
     except OSError:
         pass
-    try:
-        return float(os.sysconf("SC_PHYS_PAGES")) * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return math.inf
+    return physical_bytes()
 
 
 def check_memory(scene, steps: int, available: float | None = None):

@@ -277,6 +277,20 @@ def test_auto_checkpointing_keeps_states_and_node_arrays_only_within_its_memory_
         jaxmpm.Checkpointing(budget="256 MB")
 
 
+def test_the_default_budget_is_two_gib_or_an_eighth_of_a_smaller_machine():
+    from jaxmpm.rollout import STORE_BUDGET_BYTES, default_budget
+    from jaxmpm.budget import physical_bytes
+
+    gib = 1024**3
+    assert default_budget(24 * gib) == 2 * gib            # the development VM
+    assert default_budget(16 * gib) == 2 * gib
+    assert default_budget(8 * gib) == gib                 # a smaller machine keeps less
+    assert default_budget(gib) == gib // 4                # never under 256 MiB
+    assert default_budget(float("inf")) == 2 * gib        # the system does not say
+    assert STORE_BUDGET_BYTES == default_budget(physical_bytes())
+    assert jaxmpm.Checkpointing().budget == STORE_BUDGET_BYTES
+
+
 def test_a_rollout_in_one_segment_keeps_its_states_and_node_arrays_and_nothing_more():
     # "auto" on a small scene: one segment whose forward pass keeps each step's state and the
     # node arrays of its particle-to-grid transfers, and whose backward pass runs the rest of
