@@ -19,9 +19,9 @@ from jaxmpm.budget import physical_bytes
 def default_budget(physical: float) -> int:
     """What "auto" lets one rollout keep for its backward pass (states and node arrays): 2 GiB,
     or an eighth of the machine's physical memory where that is less (never under 256 MiB).
-    Keeping a rollout's node arrays rather than running its steps in segments made gradients
-    16-21 % faster at 16k points in float64 and 65k in float32 (docs/benchmarks.md,
-    2026-12-04, eighth session)."""
+    Keeping a whole rollout's node arrays made gradients 16 % faster at 16k points in float64
+    (against its steps run again whole) and 21 % at 65k in float32 (against segments):
+    docs/benchmarks.md, 2026-12-04, eighth session."""
     return int(min(2 * 1024**3, max(256 * 1024**2, physical / 8)))
 
 
