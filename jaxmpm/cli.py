@@ -124,8 +124,29 @@ def check_command(arguments):
     sim = checked_simulation(arguments)
     parts = estimate_bytes(sim.scene, sim.steps)
     parts.pop("counts")
-    print(f"{describe(sim)}, {sim.outputs} outputs; about {sum(parts.values()) / 1e6:.3g} MB of arrays for a forward run: ok")
+    print(f"{describe(sim)}, {sim.outputs} outputs; about {sum(parts.values()) / 1e6:.3g} MB of arrays for a forward run; "
+          f"{describe_reverse_mode(*sim.reverse_mode_memory(), sim.steps)}: ok")
     return 0
+
+
+def describe_reverse_mode(checkpointing, kept, steps) -> str:
+    """What a gradient keeps for its backward pass (`Simulation.reverse_mode_memory`), in words."""
+    segment = checkpointing.segment_length(steps)
+    if segment < steps:
+        how = f"segments of {segment} steps"
+    else:
+        how = {"recompute_grid": "one segment, its node arrays kept",
+               "recompute": "one segment, each step run again whole"}.get(checkpointing.step, "one segment")
+    if kept is None:
+        return f'a gradient runs in {how} (step = "{checkpointing.step}")'
+    return f"a gradient keeps about {readable_bytes(kept)} for its backward pass ({how})"
+
+
+def readable_bytes(count) -> str:
+    """1.88 GB, 370 MB, 8.26 MB, 12 kB."""
+    if count >= 1e9:
+        return f"{count / 1e9:.3g} GB"
+    return f"{count / 1e6:.3g} MB" if count >= 1e6 else f"{count / 1e3:.3g} kB"
 
 
 def output_path(argument, source, suffix=".h5"):

@@ -292,10 +292,32 @@ class Simulation:
 
     def checkpointing_for(self, initial: State) -> Checkpointing:
         """The checkpointing of a probe rollout from `initial`, "auto" decided for its size."""
+        return self.checkpointing.resolved(self.steps, *self._kept_bytes_per_step(initial)[1:])
+
+    def _kept_bytes_per_step(self, initial):
+        """(state, state and the laws' remembered values, node arrays and velocity gradients):
+        the bytes a step of a probe rollout from `initial` keeps for reverse mode."""
         dtype = initial.particles.x.dtype
-        grid_bytes = kept_grid_bytes(self.structure, self.point_count, dtype.itemsize)
-        solve_bytes = kept_solve_bytes(self.structure, self.params["materials"], dtype)
-        return self.checkpointing.resolved(self.steps, state_bytes(initial) + solve_bytes, grid_bytes)
+        state = state_bytes(initial)
+        solves = kept_solve_bytes(self.structure, self.params["materials"], dtype)
+        return state, state + solves, kept_grid_bytes(self.structure, self.point_count, dtype.itemsize)
+
+    def reverse_mode_memory(self) -> tuple[Checkpointing, int | None]:
+        """(checkpointing, bytes): how a gradient through the probe rollout is checkpointed
+        ("auto" decided for this scene) and the bytes it keeps for its backward pass, counted
+        from shapes without running anything: one segment keeps every step's state, what the
+        laws remember and (with "recompute_grid") the node arrays; segments keep one state a
+        segment and that for the steps of one segment. The step's own temporaries come on top.
+        None for the policies that keep intermediates ("store", "recompute_arithmetic",
+        "names:...", "dots"), which are not counted."""
+        state, recomputed, grid = self._kept_bytes_per_step(jax.eval_shape(self.initial_state))
+        checkpointing = self.checkpointing.resolved(self.steps, recomputed, grid)
+        per_step = {"recompute": recomputed, "recompute_grid": recomputed + grid}.get(checkpointing.step)
+        if per_step is None:
+            return checkpointing, None
+        segment = checkpointing.segment_length(self.steps)
+        segments = -(-self.steps // segment)
+        return checkpointing, (segment * per_step if segments == 1 else segments * state + segment * per_step)
 
     def _probes_from_state(self, params, initial):
         advance = self._advance_and_observe(params, initial.particles.x)

@@ -311,6 +311,36 @@ def test_a_rollout_in_one_segment_keeps_its_states_and_node_arrays_and_nothing_m
         temp[step] = compiled.memory_analysis().temp_size_in_bytes
     assert 0.5 * states <= temp["auto"] <= 1.5 * states, (temp, states)
     assert temp["recompute_arithmetic"] > 3 * temp["auto"], temp
+    # what `jaxmpm check` reports, counted from shapes alone
+    assert sim.reverse_mode_memory() == (jaxmpm.Checkpointing(sim.steps, "recompute_grid"), states)
+    assert kept_for("recompute_arithmetic", sim)[1] is None
+
+
+def kept_for(step, sim, segment=None, budget=None):
+    more = {} if budget is None else {"budget": budget}
+    return jaxmpm.Simulation(sim.scene, jaxmpm.Checkpointing(segment=segment, step=step, **more)).reverse_mode_memory()
+
+
+def test_reverse_mode_memory_counts_what_each_checkpointing_keeps():
+    # Simulation.reverse_mode_memory: one segment keeps every step's state (and, with
+    # "recompute_grid", its node arrays); segments keep one state a segment and that for the
+    # steps of one segment. The gradient's XLA temporaries hold that and the step's own.
+    from jaxmpm.rollout import state_bytes
+    from jaxmpm.solver import kept_grid_bytes
+
+    sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK.replace("duration = 0.01", "duration = 0.1")))   # 140 steps
+    initial = sim.initial_state()
+    state = state_bytes(initial)
+    grid = kept_grid_bytes(sim.structure, sim.point_count, initial.particles.x.dtype.itemsize)
+    assert kept_for("recompute", sim, segment=sim.steps)[1] == sim.steps * state
+    # a budget under the whole rollout's states: "auto" runs it in segments of 14 (140 = 10 x 14)
+    checkpointing, kept = kept_for("auto", sim, budget=sim.steps * state - 1)
+    assert checkpointing == jaxmpm.Checkpointing(None, "recompute_grid", budget=sim.steps * state - 1)
+    assert checkpointing.segment_length(sim.steps) == 14
+    assert kept == 10 * state + 14 * (state + grid)
+    segmented = jaxmpm.Simulation(sim.scene, checkpointing)
+    compiled = jax.jit(jax.grad(lambda p: settlement_measure(segmented, p))).lower(sim.params).compile()
+    assert 0.5 * kept <= compiled.memory_analysis().temp_size_in_bytes <= 1.5 * kept
 
 
 @pytest.mark.parametrize("shape", ["linear", "bspline2"])
