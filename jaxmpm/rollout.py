@@ -160,6 +160,15 @@ class Checkpointing:
             return min(divisors, key=lambda d: (steps // d + d, -d))
         return max(1, math.ceil(root))
 
+    def kept_bytes(self, steps, state_bytes, step_bytes):
+        """Bytes `checkpointed_rollout` keeps for reverse mode over `steps` steps whose state
+        takes `state_bytes` and whose checkpointed step keeps `step_bytes` (its state and the
+        values the policy saves): one segment keeps every step's; segments keep one state a
+        segment and every step's of one segment."""
+        segment = self.segment_length(steps)
+        segments = -(-steps // segment)
+        return segment * step_bytes if segments == 1 else segments * state_bytes + segment * step_bytes
+
 
 def state_bytes(state):
     """Bytes of one state (a pytree of arrays or tracers): what a rollout in one segment keeps per

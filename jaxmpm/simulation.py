@@ -315,9 +315,7 @@ class Simulation:
         per_step = {"recompute": recomputed, "recompute_grid": recomputed + grid}.get(checkpointing.step)
         if per_step is None:
             return checkpointing, None
-        segment = checkpointing.segment_length(self.steps)
-        segments = -(-self.steps // segment)
-        return checkpointing, (segment * per_step if segments == 1 else segments * state + segment * per_step)
+        return checkpointing, checkpointing.kept_bytes(self.steps, state, per_step)
 
     def _probes_from_state(self, params, initial):
         advance = self._advance_and_observe(params, initial.particles.x)
