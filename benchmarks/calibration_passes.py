@@ -11,7 +11,8 @@ runs over the whole probe rollout (`Simulation.probes`):
 - Jacobian: the residuals with P tangents in one pass, as Levenberg-Marquardt (`lm`, the
   default optimizer) computes them (`inverse.levenberg_marquardt.residuals_and_jacobian`);
 - gradient: `jax.grad` of the sum of squared residuals, as L-BFGS and Adam compute it,
-  compiled as jaxmpm compiles its reverse-mode work (`jit_reverse_mode`).
+  compiled as jaxmpm compiles its reverse-mode work.
+All three get the XLA options a calibration gives them (`jaxmpm.xla_options`).
 Each is timed best of `--repeats` calls after its first; the first call's excess over the best
 is its compile time. Each scene runs in a fresh process, float64 (JAX's 64-bit mode on), the
 persistent compilation cache off.
@@ -50,7 +51,7 @@ def measure(path: Path, repeats: int) -> dict:
     import jaxmpm
     from inverse.levenberg_marquardt import residuals_and_jacobian
     from jaxmpm.tracing import collector_paused
-    from jaxmpm.xla_options import jit_reverse_mode
+    from jaxmpm.xla_options import jit_reverse_mode, jit_with_options
 
     scene = jaxmpm.load_scene(path)
     sim = jaxmpm.Simulation(scene)
@@ -64,9 +65,9 @@ def measure(path: Path, repeats: int) -> dict:
         return jnp.concatenate([history.ravel() for history in probes.values()])
 
     programs = {
-        "forward": jax.jit(residuals),
-        "jacobian": jax.jit(lambda z: residuals_and_jacobian(residuals, z)),
-        "gradient": jit_reverse_mode(jax.grad(lambda z: jnp.sum(residuals(z) ** 2))),
+        "forward": jit_with_options(residuals, several_fields=sim.several_fields),
+        "jacobian": jit_with_options(lambda z: residuals_and_jacobian(residuals, z), several_fields=sim.several_fields),
+        "gradient": jit_reverse_mode(jax.grad(lambda z: jnp.sum(residuals(z) ** 2)), sim.several_fields),
     }
     result = {"scene": path.name, "points": sim.point_count, "steps": sim.steps, "parameters": len(names)}
     for name, program in programs.items():

@@ -7,8 +7,8 @@
 What a user waits for before the first step of a calibration runs: for each example scene,
 the program `Simulation.probes` builds (the whole rollout, checkpointed as jaxmpm chooses for
 the scene), and the gradient of a misfit of its probe histories with respect to every
-material parameter, compiled as jaxmpm compiles its reverse-mode work
-(`jit_reverse_mode`). Scenes without probes get a probe of the mean displacement of their
+material parameter, both with the XLA options jaxmpm compiles them with
+(`jaxmpm.xla_options`). Scenes without probes get a probe of the mean displacement of their
 first body. Trace (Python tracing and lowering to XLA, with Python's garbage collector paused as
 jaxmpm pauses it for its own programs: `jaxmpm.tracing`) and XLA compilation are timed apart.
 Each scene runs in a fresh process (nothing cached in memory; JAX's persistent compilation
@@ -54,7 +54,7 @@ def measure(path: Path) -> dict:
 
     import jaxmpm
     from jaxmpm.tracing import collector_paused
-    from jaxmpm.xla_options import jit_reverse_mode
+    from jaxmpm.xla_options import jit_reverse_mode, jit_with_options
 
     scene = jaxmpm.load_scene(path)
     if not scene.probes:
@@ -70,7 +70,9 @@ def measure(path: Path) -> dict:
     chosen = sim.checkpointing_for(sim.initial_state(params))
     result = {"scene": path.name, "points": sim.point_count, "steps": sim.steps, "dtype": str(sim.dtype),
               "segment": chosen.segment_length(sim.steps), "kept": chosen.step}
-    for name, program in (("forward", jax.jit(misfit)), ("gradient", jit_reverse_mode(jax.grad(misfit)))):
+    programs = (("forward", jit_with_options(misfit, several_fields=sim.several_fields)),
+                ("gradient", jit_reverse_mode(jax.grad(misfit), sim.several_fields)))
+    for name, program in programs:
         with collector_paused():        # as a calibration traces its programs
             lowered, trace_s = timed(lambda: program.trace(materials).lower())
             _, compile_s = timed(lowered.compile)

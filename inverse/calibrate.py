@@ -54,7 +54,7 @@ from jaxmpm.parameters import resolve
 from jaxmpm.files import atomic_path
 from jaxmpm.simulation import STEP_SLACK, describe_failure
 from jaxmpm.tracing import collector_paused
-from jaxmpm.xla_options import jit_reverse_mode
+from jaxmpm.xla_options import jit_reverse_mode, jit_with_options
 
 OPTIMIZERS = ("lm", "lbfgs", "adam")
 LM_DAMPING_LIMIT = 1e16     # Levenberg–Marquardt damping beyond this: no step lowers the loss
@@ -122,8 +122,10 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
         return 0.5 * jnp.sum(r * r) / count
 
     batched = functools.partial(over_starts, in_axes=(0, 0, None, None))
+    several_fields = any(e.sim.several_fields for e in experiments)
+    jit = functools.partial(jit_with_options, several_fields=several_fields)
     if optimizer_name == "lm":
-        iterate = jax.jit(batched(levenberg_marquardt_iteration(residuals_of_z, count)))   # forward mode only
+        iterate = jit(batched(levenberg_marquardt_iteration(residuals_of_z, count)))   # forward mode only
 
         def start(z, data, bases):
             """The first iteration's program evaluates the starts (no second compilation)."""
@@ -132,14 +134,15 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
             return iterate(z, unevaluated, data, bases)[1]
     else:
         first, step = optax_iteration(loss_of_z, optimizer_name, learning_rate)
-        start, iterate = jit_reverse_mode(over_starts(first, in_axes=(0, None, None))), jit_reverse_mode(batched(step))
+        start = jit_reverse_mode(over_starts(first, in_axes=(0, None, None)), several_fields)
+        iterate = jit_reverse_mode(batched(step), several_fields)
     problem = CompiledProblem(
         residuals=residuals,
-        linearization=jax.jit(lambda values, data, bases: levenberg_marquardt.residuals_and_jacobian(
+        linearization=jit(lambda values, data, bases: levenberg_marquardt.residuals_and_jacobian(
             functools.partial(residuals, data=data, bases=bases), values)),
         start=start,
         iterate=iterate,
-        losses=None if optimizer_name == "lm" else jax.jit(over_starts(loss_of_z, in_axes=(0, None, None))),
+        losses=None if optimizer_name == "lm" else jit(over_starts(loss_of_z, in_axes=(0, None, None))),
     )
     cache[key] = problem
     return problem

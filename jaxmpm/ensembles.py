@@ -20,6 +20,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxmpm.errors import SceneError
 from jaxmpm.tracing import collector_paused
+from jaxmpm.xla_options import jit_with_options
 
 
 def stack(param_sets) -> dict:
@@ -77,7 +78,8 @@ def ensemble(sim, params_batch, devices=None) -> dict:
     key = ("ensemble", tuple(device.id for device in mesh.devices.flat), padded)
     if key not in sim.compiled_cache:
         member = lambda params: sim._probes(params, sim.initial_state(params))[0]  # noqa: E731
-        sim.compiled_cache[key] = jax.jit(jax.vmap(member), out_shardings=sharding)
+        sim.compiled_cache[key] = jit_with_options(jax.vmap(member), several_fields=sim.several_fields,
+                                                   out_shardings=sharding)
     with collector_paused():
         probes = sim.compiled_cache[key](batch)
     if padded == count:

@@ -37,6 +37,7 @@ from jaxmpm.seeding import padded, seed_bodies
 from jaxmpm.solver import BodyBlock, Structure, evolving_leaves, kept_grid_bytes, kept_solve_bytes, make_step
 from jaxmpm.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
 from jaxmpm.tracing import collector_paused
+from jaxmpm.xla_options import compiler_options, jit_with_options
 
 
 STEP_SLACK = 1e-6   # relative round-off allowed between the scene's dt and the stable limit
@@ -152,9 +153,19 @@ class Simulation:
         self.params = scene_parameters(scene)
         self.step = make_step(self.structure)
         self.observe = make_probes(scene, self.seeds)
-        self._probes = jax.jit(self._probes_from_state)
+        self._probes = jax.jit(self._probes_from_state)    # also nested in callers' jits: XLA's defaults
         self.compiled_cache = {}     # compiled work built on this simulation (e.g. calibrations)
-        self._advance = jax.jit(self._advance_one_output)
+        self._advance = jit_with_options(self._advance_one_output, several_fields=self.several_fields)
+
+    @property
+    def several_fields(self) -> bool:
+        """Whether the grid carries several velocity fields (contact, prescribed or rigid bodies)."""
+        return self.structure.fields > 1
+
+    def compiler_options(self, reverse_mode: bool = False) -> dict:
+        """The XLA options jaxmpm compiles this scene's programs with (`jaxmpm.xla_options`),
+        for your own jits: `jax.jit(jax.grad(loss), compiler_options=sim.compiler_options(True))`."""
+        return compiler_options(reverse_mode=reverse_mode, several_fields=self.several_fields)
 
     @property
     def point_count(self) -> int:

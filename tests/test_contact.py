@@ -466,6 +466,33 @@ def test_fields_and_parameters_follow_the_scene():
     assert set(single.params) == {"materials"}
 
 
+def test_scenes_with_several_fields_compile_with_fewer_copies_and_the_same_numbers():
+    # jaxmpm.xla_options: programs of scenes with several velocity fields are compiled with
+    # XLA's region-analysis copy insertion (the wall twin's gradient 8-20 % faster,
+    # docs/benchmarks.md). It must change no number (copies only), and must reach the compiled
+    # program: fewer copies in it. One-field scenes keep XLA's defaults.
+    from jaxmpm.xla_options import accepted, compiler_options
+
+    single = Simulation(dataclasses.replace(sliding_block(30.0, 0.3), contacts=(), probes=(),
+                                            bodies=(sliding_block(30.0, 0.3).bodies[1],)))
+    assert not single.several_fields and single.compiler_options() == {}
+    sim = Simulation(sliding_block(30.0, 0.3, duration=0.02, shape="bspline2"))
+    assert sim.several_fields
+    assert sim.compiler_options(reverse_mode=True) == compiler_options(reverse_mode=True, several_fields=True)
+    if not accepted("region_analysis"):
+        pytest.skip("this jaxlib does not accept the option")
+
+    def loss(friction):
+        probes = sim.probes(with_values(sim.params, {"block/slab.friction": friction}))
+        return jnp.sum(probes["move"][:, 0]) + jnp.sum(probes["load"])
+
+    for program, reverse_mode in ((loss, False), (jax.grad(loss), True)):
+        plain = jax.jit(program, compiler_options=compiler_options(reverse_mode=reverse_mode) or None).lower(0.3).compile()
+        tuned = jax.jit(program, compiler_options=sim.compiler_options(reverse_mode)).lower(0.3).compile()
+        assert tuned.as_text().count(" copy(") < plain.as_text().count(" copy(")
+        assert float(tuned(0.3)) == float(plain(0.3))
+
+
 def test_unpaired_bodies_are_bonded_to_paired_ones():
     # A foundation that is in no pair shares field 0; the backfill and the wall get their own.
     # The foundation is bonded (no slip) to both, the pair is in frictional contact, in the
