@@ -94,12 +94,14 @@ class CompiledProblem:
     simulations, fitted parameters, optimiser and observation layouts (data values and the
     experiments' fixed values may change freely).
 
-    start(z (S, P), data, bases) -> state;  iterate(z, state, data, bases) ->
-    (z, state, loss at the incoming z (S,), ||dL/dz||_inf there (S,))."""
+    start(z (S, P), data, bases) -> state;  start_shape(z, data, bases) -> its shapes (nothing
+    runs);  iterate(z, state, data, bases) -> (z, state, loss at the incoming z (S,),
+    ||dL/dz||_inf there (S,))."""
 
     residuals: object      # residuals(values (P,), data, bases) -> (M,)
     linearization: object  # linearization(values (P,), data, bases) -> (r (M,), dr/dvalues (M, P)), forward mode
     start: object
+    start_shape: object
     iterate: object
     losses: object         # losses(z (S, P), data, bases) -> (S,); None for "lm" (its state holds them)
 
@@ -127,20 +129,28 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
     if optimizer_name == "lm":
         iterate = jit(batched(levenberg_marquardt_iteration(residuals_of_z, count)))   # forward mode only
 
+        def unevaluated(z, data, bases):
+            size = jax.eval_shape(residuals_of_z, z[0], data, bases).shape[0]
+            return jax.vmap(lambda point: levenberg_marquardt.unevaluated(point, size))(z)
+
         def start(z, data, bases):
             """The first iteration's program evaluates the starts (no second compilation)."""
-            size = jax.eval_shape(residuals_of_z, z[0], data, bases).shape[0]
-            unevaluated = jax.vmap(lambda point: levenberg_marquardt.unevaluated(point, size))(z)
-            return iterate(z, unevaluated, data, bases)[1]
+            return iterate(z, unevaluated(z, data, bases), data, bases)[1]
+
+        def start_shape(z, data, bases):
+            # `iterate` traced at the top (JAX refuses a jit with compiler options inside another trace)
+            return jax.eval_shape(iterate, z, jax.eval_shape(unevaluated, z, data, bases), data, bases)[1]
     else:
         first, step = optax_iteration(loss_of_z, optimizer_name, learning_rate)
         start = jit_reverse_mode(over_starts(first, in_axes=(0, None, None)), several_fields)
+        start_shape = functools.partial(jax.eval_shape, start)
         iterate = jit_reverse_mode(batched(step), several_fields)
     problem = CompiledProblem(
         residuals=residuals,
         linearization=jit(lambda values, data, bases: levenberg_marquardt.residuals_and_jacobian(
             functools.partial(residuals, data=data, bases=bases), values)),
         start=start,
+        start_shape=start_shape,
         iterate=iterate,
         losses=None if optimizer_name == "lm" else jit(over_starts(loss_of_z, in_axes=(0, None, None))),
     )
@@ -382,7 +392,7 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
     fingerprint = _fingerprint(experiments, space, optimizer, learning_rate, start_values, data)
     started = clock.monotonic()
     with collector_paused():        # the first call of each program traces it (jaxmpm.tracing)
-        state_shape = jax.eval_shape(problem.start, z0, data, bases)
+        state_shape = problem.start_shape(z0, data, bases)
     treedef = jax.tree_util.tree_structure(state_shape)
     if resume and checkpoint is not None and Path(checkpoint).exists():
         run = load_checkpoint(checkpoint, fingerprint)

@@ -11,9 +11,9 @@ where it measured faster; values are the same bit for bit either way:
   insertion with region analysis, which proves more in-place updates safe across loop and
   conditional boundaries and so drops copies of the node arrays that the per-field updates
   (impulses, edge conditions) made every step. The wall twin's gradient ran 8-20 % faster
-  and its forward pass 4-5 %, with about 4 % fewer kernels to compile; a one-field scene
-  loses up to 9 % with it (its remaining copies were of per-point arrays that later kernels
-  read faster from a copy), so one-field programs keep XLA's defaults.
+  and its forward pass 4-5 %, with about 4 % fewer kernels to compile; the one-field heap's
+  gradient lost up to 9 % with it (there it removed copies of the state's per-point arrays),
+  so one-field programs keep XLA's defaults.
 
 Options are per `jax.jit`: the user's own jits, and everything else in the process, are left
 alone (`Simulation.compiler_options` gives them the same choice for their own programs). An

@@ -491,6 +491,12 @@ def test_scenes_with_several_fields_compile_with_fewer_copies_and_the_same_numbe
         tuned = jax.jit(program, compiler_options=sim.compiler_options(reverse_mode)).lower(0.3).compile()
         assert tuned.as_text().count(" copy(") < plain.as_text().count(" copy(")
         assert float(tuned(0.3)) == float(plain(0.3))
+    # and `Simulation.run`'s compiled output step gets them
+    params = sim.cast(sim.params)
+    initial = sim.initial_state(params)
+    arguments = (params, initial, initial.particles.x)
+    plain = jax.jit(sim._advance_one_output).lower(*arguments).compile()
+    assert sim._advance.lower(*arguments).compile().as_text().count(" copy(") < plain.as_text().count(" copy(")
 
 
 def test_unpaired_bodies_are_bonded_to_paired_ones():
