@@ -1,7 +1,8 @@
 """XLA compiler options for the programs jaxmpm compiles, chosen by what they compute.
 
 Two options, each measured on the development VM (docs/benchmarks.md) and each applied only
-where it measured faster; values are the same bit for bit either way:
+where it measured faster; values are the same to round-off (the sums' order) without YNNPACK,
+and bit for bit with region analysis:
 
 - Reverse mode: XLA:CPU (jaxlib 0.10) hands short reductions to YNNPACK library kernels. The
   backward pass of the MPM step is full of them (the transposes of the stencil broadcasts,
