@@ -189,9 +189,14 @@ def run_case(points: int, dtype: str, material: str, shape: str, transfer: str, 
     # the gradient compiled as jaxmpm compiles its own reverse-mode work (YNNPACK fusions off)
     forward, gradient = jax.jit(loss), jit_reverse_mode(jax.grad(loss))
     loss_first = timed(forward, young)
-    loss_times = [timed(forward, young) for _ in range(max(2, repeats // 2))]
     grad_first = timed(gradient, young)
-    grad_times = [timed(gradient, young) for _ in range(max(2, repeats // 3))]
+    # loss and gradient called in turn, so that a change of the VM's speed during the case
+    # reaches both: timed one after the other, linear + APIC read 4.4x in the table where
+    # calls in turn in one process gave 3.0x (docs/benchmarks.md, 2026-12-04)
+    loss_times, grad_times = [], []
+    for _ in range(max(3, repeats)):
+        loss_times.append(timed(forward, young))
+        grad_times.append(timed(gradient, young))
     value = float(gradient(young))
     assert value == value and value != 0.0, f"gradient {value}"
     memory = gradient.lower(young).compile().memory_analysis()
@@ -289,7 +294,8 @@ the same initial state; best and median of the repeats. "Per CPU-second" divides
 process CPU time of the best call instead (all threads). Compile time is the first call minus
 the median steady call. For the rows with a gradient, the ratio is the best time of the
 jitted `jax.grad(loss)` (compiled as jaxmpm compiles its own reverse-mode work, YNNPACK
-fusions off) over the best of `jax.jit(loss)`, where loss(E) sums two probe histories of
+fusions off) over the best of `jax.jit(loss)`, the two called in turn (at least three rounds
+after their first calls), where loss(E) sums two probe histories of
 `Simulation.probes` over a {GRADIENT_STEPS}-step rollout (default checkpointing: one segment
 when every step's state and the node arrays of its particle-to-grid transfers fit in 2 GiB,
 every row here on this machine, whose backward pass runs each step again but for those
