@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from throughput import block_scene, write_section  # noqa: E402
 
 import jaxmpm  # noqa: E402
-from jaxmpm.xla_options import reverse_mode_options  # noqa: E402
+from jaxmpm.xla_options import compiler_options  # noqa: E402
 
 BEGIN, END = "<!-- gradient_memory:begin -->", "<!-- gradient_memory:end -->"
 LARGE_BEGIN, LARGE_END = "<!-- gradient_memory_large:begin -->", "<!-- gradient_memory_large:end -->"
@@ -66,7 +66,7 @@ def large_case(steps, run):
         return jax.numpy.sum(probes["top"]) + jax.numpy.sum(probes["centre_of_mass"])
 
     young = jax.numpy.float32(1.0e6)
-    compiled = jax.jit(jax.grad(loss), compiler_options=reverse_mode_options()).lower(young).compile()
+    compiled = jax.jit(jax.grad(loss), compiler_options=compiler_options(reverse_mode=True)).lower(young).compile()
     temporary = compiled.memory_analysis().temp_size_in_bytes / 1e6
     if not run:
         return temporary, None, None

@@ -54,11 +54,6 @@ def compiler_options(*, reverse_mode: bool = False, several_fields: bool = False
     return options
 
 
-def reverse_mode_options(several_fields: bool = False) -> dict:
-    """`compiler_options` of a reverse-mode program."""
-    return compiler_options(reverse_mode=True, several_fields=several_fields)
-
-
 def jit_with_options(function, *, reverse_mode: bool = False, several_fields: bool = False, **jit_arguments):
     """jax.jit(function, **jit_arguments) with the `compiler_options` of such a program."""
     options = compiler_options(reverse_mode=reverse_mode, several_fields=several_fields)

@@ -368,7 +368,7 @@ def test_reverse_mode_jit_drops_library_reductions_and_keeps_the_gradient():
     # reduction kernels (15-17 % faster backward passes, docs/benchmarks.md); the numbers must
     # not change beyond round-off, and the option must really reach the compiled program. XLA
     # uses those kernels only for large enough arrays, hence a block of 1,600 points.
-    from jaxmpm.xla_options import jit_reverse_mode, reverse_mode_options
+    from jaxmpm.xla_options import compiler_options, jit_reverse_mode
 
     finer = {"cell = 0.05": "cell = 0.01", "duration = 0.01": "duration = 0.001", "output_every = 0.005": "output_every = 0.001"}
     text = BLOCK
@@ -383,7 +383,7 @@ def test_reverse_mode_jit_drops_library_reductions_and_keeps_the_gradient():
 
     plain, tuned = jax.jit(jax.grad(loss)), jit_reverse_mode(jax.grad(loss))
     np.testing.assert_allclose(tuned(young), plain(young), rtol=1e-12)
-    if reverse_mode_options():
+    if compiler_options(reverse_mode=True):
         # (the HLO text also carries Python frame names, so look for the fusion kind itself)
         assert "ynn_fusion" in plain.lower(young).compile().as_text()
         assert "ynn_fusion" not in tuned.lower(young).compile().as_text()
