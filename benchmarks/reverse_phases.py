@@ -56,7 +56,7 @@ def main():
     stencil = layout.stencil(particles.x)
     nodes = solver.particles_to_grid(particles, stencil, None, None, structure)
     v_old, v_new = solver.update_grid_velocity(nodes, dt, structure.damping, constrain, floor)
-    moved = solver.grid_to_particles(particles, stencil, v_old, v_new, None, structure.transfer, structure.flip, dt, layout)
+    moved = solver.grid_to_particles(particles, stencil, v_old, v_new, None, structure.memory, dt, layout)
     remapped = solver.remap_velocity(moved, stencil, None, structure, nodes.mass, constrain, floor)
     gradient = solver.velocity_gradient(stencil, remapped, None, structure, particles.x)
 

@@ -19,16 +19,19 @@ once per step by an impulse J on a and -J on b, so momentum is kept exactly:
              force for contact pairs, solved together with the bonded nodes' momentum for
              bonded interfaces (`solver.bonded_rigid_motions`).
 
-Normals. Against a prescribed or rigid body, the normal is that body's own (its surface is
-known to the resolution of its points and does not deform). Between two free bodies it is the
-mean of their own outward normals, each weighted by its field's mass at the node: where one
-body only grazes a node (a corner, a thin edge, a body just arriving) its normal is poorly
-resolved and its mass there is small, so the well-covered body's normal decides. Both choices
-are antisymmetric (n_ab = -n_ba), so the two fields always get equal and opposite impulses.
+Normals. Against a prescribed body, the normal is that body's own (its surface is known to the
+resolution of its points and does not deform). Between two free bodies, and between a free and
+a rigid body (the limit of a stiff free one, which must behave the same), it is the mean of
+their own outward normals, each weighted by its field's mass at the node: where one body only
+grazes a node (a corner, a thin edge, a body just arriving) its normal is poorly resolved and
+its mass there is small, so the well-covered body's normal decides. Both choices are
+antisymmetric (n_ab = -n_ba), so the two fields always get equal and opposite impulses.
 With the plain difference g_a - g_b (or the mass-weighted mean against a held slab), a block
 sliding on a flat slab with mu = 0 met the slab's normal tilted at its leading corner, lost
 7-8 % of its acceleration g sin(theta) and climbed (Nairn 2013, Comput. Model. Eng. Sci. 92,
-compares normal choices; docs/contact.md gives our measurements). Contact is detected where
+compares normal choices; docs/contact.md gives our measurements). A rigid wall with its own
+normal instead sank at its toe and turned 40 % further than the same wall as a stiff elastic
+body (docs/convergence.md). Contact is detected where
 both fields have mass at a node, i.e. up to about one cell before the bodies touch (the
 supports of their shape functions overlap); docs/contact.md measures that gap.
 
@@ -47,13 +50,16 @@ class Interface:
 
     first, second: field indices; contact: the pair's name "body/body" for a declared contact
     (frictional), None for bonded fields (no slip); kinematic_first / kinematic_second: whether
-    that field is a prescribed or rigid body (then it keeps its own velocity)."""
+    that field is a prescribed or rigid body (then it keeps its own velocity); normal_from: the
+    field whose own outward normal the contact uses (a prescribed body's), None for the
+    mass-weighted mean of both (`contact_normals`)."""
 
     first: int
     second: int
     contact: str | None
     kinematic_first: bool = False
     kinematic_second: bool = False
+    normal_from: int | None = None
 
 
 def safe_norm(vectors):
@@ -93,12 +99,12 @@ def contact_velocity_change(relative, normal, friction):
 
 
 def interface_normals(interface, mass, mass_gradient):
-    """Unit normals from `first` into `second` at each node, (nx, ny, 2): the prescribed or
-    rigid body's own normal when one side is such a body, else `contact_normals`."""
+    """Unit normals from `first` into `second` at each node, (nx, ny, 2): the prescribed body's
+    own normal when one side is such a body, else `contact_normals`."""
     a, b = interface.first, interface.second
-    if interface.kinematic_second:
+    if interface.normal_from == b:
         return -unit(mass_gradient[b])
-    if interface.kinematic_first:
+    if interface.normal_from == a:
         return unit(mass_gradient[a])
     return contact_normals(mass[a], mass_gradient[a], mass[b], mass_gradient[b])
 

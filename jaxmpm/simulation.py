@@ -27,6 +27,7 @@ from jaxmpm.grid import GridLayout
 from jaxmpm.initial_stress import depth_below_top, geostatic_stress, jaky_k0
 from jaxmpm.contact import Interface
 from jaxmpm.keys import is_concrete
+from jaxmpm.materials.base import material_parameters
 from jaxmpm.parameters import scene_parameters
 from jaxmpm.probes import make_probes
 from jaxmpm.output import RunFile, deferred_interrupts
@@ -34,7 +35,9 @@ from jaxmpm.results import FileSnapshots, Result
 from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps, state_bytes, with_evolving_tangents
 from jaxmpm.scene import Scene, body_speed
 from jaxmpm.seeding import padded, seed_bodies
-from jaxmpm.solver import BodyBlock, Structure, evolving_leaves, kept_grid_bytes, kept_solve_bytes, make_step
+from jaxmpm.solver import (
+    BodyBlock, Structure, evolving_leaves, kept_grid_bytes, kept_solve_bytes, make_step, transfer_memory,
+)
 from jaxmpm.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
 from jaxmpm.tracing import collector_paused
 from jaxmpm.xla_options import compiler_options, jit_with_options
@@ -70,6 +73,14 @@ def time_stepping(scene: Scene):
     return interval / per_output, per_output, outputs
 
 
+def slowest_crossing_time(scene: Scene) -> float:
+    """h / c_p of the free body whose p-wave is slowest (scene values) [s]: the time scale
+    of the APIC transfer's memory (`solver.transfer_memory`); inf without free bodies."""
+    speeds = [float(scene.material_of(body).wave_speed(material_parameters(scene.material_of(body))))
+              for body in scene.bodies if body.kinematics.type == "free"]
+    return scene.grid.cell / min(speeds) if speeds else math.inf
+
+
 def velocity_fields(scene: Scene):
     """(field of each body, number of fields, interfaces): bodies of a contact pair and
     prescribed or rigid bodies get a field each; all other bodies share field 0 (no slip
@@ -82,6 +93,7 @@ def velocity_fields(scene: Scene):
     field.update({name: index + bool(shared) for index, name in enumerate(own)})
     count = len(own) + bool(shared)
     kinematic = {field[body.name] for body in scene.bodies if body.kinematics.type != "free"}
+    prescribed = {field[body.name] for body in scene.bodies if body.kinematics.type == "prescribed"}
     contacts = {frozenset(field[name] for name in contact.pair): contact for contact in scene.contacts}
     interfaces = []
     for pair in itertools.combinations(range(count), 2):
@@ -90,7 +102,8 @@ def velocity_fields(scene: Scene):
         contact = contacts.get(frozenset(pair))
         first, second = pair if contact is None else (field[contact.pair[0]], field[contact.pair[1]])
         name = None if contact is None else contact.name      # a contact keeps its pair's order
-        interfaces.append(Interface(first, second, name, first in kinematic, second in kinematic))
+        held = next((side for side in (first, second) if side in prescribed), None)
+        interfaces.append(Interface(first, second, name, first in kinematic, second in kinematic, held))
     return field, count, tuple(interfaces)
 
 
@@ -141,7 +154,8 @@ class Simulation:
             gravity=scene.gravity,
             dt=self.dt,
             transfer=scene.numerics.transfer,
-            flip=scene.numerics.flip,
+            memory=transfer_memory(scene.numerics.transfer, scene.numerics.flip, scene.numerics.relaxation,
+                                   self.dt, slowest_crossing_time(scene)),
             damping=scene.numerics.damping,
             update=scene.numerics.update,
             bodies=blocks,
@@ -267,7 +281,7 @@ class Simulation:
             histories.append(block.law.init_state(size, dtype))
             if block.kinematics == "rigid":
                 zero = jnp.zeros((), dtype)
-                rigid[block.name] = RigidMotion(jnp.zeros(2, dtype), zero, velocity, zero, jnp.zeros(2, dtype), zero)
+                rigid[block.name] = RigidMotion(jnp.zeros(2, dtype), zero, velocity, zero)
         particles = Particles(
             x=jnp.asarray(self.seeds.positions, dtype),
             v=jnp.concatenate(velocities),

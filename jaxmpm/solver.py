@@ -22,16 +22,20 @@ computed from nodal velocities re-projected from the updated points, so a node t
 point with a tiny weight cannot inject a huge velocity into the stress (the cell-crossing
 weakness of USL). `update = "usl"` uses the grid velocity directly (one scatter fewer).
 
-Transfers: FLIP/PIC blend (`flip` = 1 pure FLIP, 0 pure PIC), or APIC (Jiang et al. 2015):
-points carry an affine velocity C_p; momentum goes to the grid as m_p N_I (v_p + C_p (x_I - x_p))
-and comes back as v_p = sum N_I v_I, C_p = sum v_I (x) grad N_I (for multilinear shape functions
-this is B_p D_p^-1 exactly; for gimp and bspline2 it is the velocity gradient, as in MLS-MPM,
-not B_p D_p^-1). C_p is the velocity gradient that drives the stress: with MUSL it
-comes from the re-mapped velocities, so nodes of tiny mass at a free surface (where f / m is
-large while grad N is not small) cannot inject a huge affine velocity; the price is that
-angular momentum is then kept only approximately (exactly with `update = "usl"` and linear
-shape functions). APIC avoids
-FLIP's noise and PIC's dissipation, and has no blend to tune.
+Transfers: FLIP/PIC blend (`flip` = 1 pure FLIP, 0 pure PIC, per step), or APIC (Jiang et al.
+2015): points carry an affine velocity C_p; momentum goes to the grid as m_p N_I (v_p + C_p
+(x_I - x_p)) and comes back as sum N_I v_I, C_p = sum v_I (x) grad N_I (for multilinear shape
+functions this is B_p D_p^-1 exactly; for gimp and bspline2 it is the velocity gradient, as in
+MLS-MPM). C_p is the velocity gradient that drives the stress: with MUSL it comes from the
+re-mapped velocities, so nodes of tiny mass at a free surface (where f / m is large while grad N
+is not small) cannot inject a huge affine velocity.
+
+Every grid-to-point transfer that replaces the points' velocity by the grid's filters it, and a
+filter applied once per step dissipates in proportion to the number of steps: plain APIC (as
+PIC) made results drift with dt (a wall's displacement halved with each halving of dt,
+docs/convergence.md). So with APIC the points keep a memory of their own FLIP velocity that
+fades over a fixed time tau, not a fixed number of steps (`transfer_memory`): the filtering
+per unit time, and so the result, no longer depends on dt.
 
 `make_step(structure)` closes over the static structure and returns a pure
 `step(params, state) -> (state, diagnostics)`; every physical value comes from `params`
@@ -48,6 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
+from jaxmpm.bodies import Grid, free_motions, impose_kinematic_fields, move_kinematic_bodies, node_positions, solve_rigid_motions
 from jaxmpm.contact import Interface, resolve_interfaces
 from jaxmpm.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
@@ -87,8 +92,8 @@ class Structure:
     """Everything static about a scene: changing any field compiles a new step.
 
     layout: the grid; boundaries: edge conditions; gravity (2,) [m/s^2]; dt [s];
-    transfer: "flip" | "apic"; flip: FLIP fraction of the velocity update (1 = FLIP, 0 = PIC),
-    used with transfer = "flip"; damping: local (Cundall) damping coefficient; update:
+    transfer: "flip" | "apic"; memory: the fraction of each point's own (FLIP) velocity update
+    it keeps per step (`grid_to_particles`); damping: local (Cundall) damping coefficient; update:
     "musl" | "usl"; bodies: the contiguous body blocks; fields: number of velocity fields on
     the grid; interfaces: the pairs of fields that meet (`contact.Interface`); point_spacing:
     h / ppc [m] (a rigid body's points are squares of this side); axisymmetric: x is the
@@ -100,7 +105,7 @@ class Structure:
     gravity: tuple[float, float]
     dt: float
     transfer: str
-    flip: float
+    memory: float
     damping: float
     update: str
     bodies: tuple[BodyBlock, ...]
@@ -112,12 +117,6 @@ class Structure:
     @property
     def has_kinematic_bodies(self):
         return any(block.kinematics != "free" for block in self.bodies)
-
-    @property
-    def has_bonded_rigid_bodies(self):
-        rigid = {block.field for block in self.blocks_of("rigid")}
-        return any(interface.contact is None and {interface.first, interface.second} & rigid
-                   for interface in self.interfaces)
 
     @property
     def has_contact(self):
@@ -219,227 +218,24 @@ def update_grid_velocity(nodes, dt, damping, constrain, floor):
     return velocity_old, velocity_new
 
 
-def prescribed_velocity(block, velocity, time):
-    """A prescribed body's velocity (2,) at `time` [s]: the constant `velocity` (2,), or the
-    table `velocity` (K, 2) at `block.times`, linear in between, held beyond the ends."""
-    if block.times is None:
-        return velocity
-    times = jnp.asarray(block.times, velocity.dtype)
-    return jnp.stack([jnp.interp(time, times, velocity[:, axis]) for axis in range(2)])
-
-
-def rigid_body_frame(particles, block, spacing):
-    """(mass M, centre of mass c (2,), polar moment J about c) of a rigid body from its points,
-    each a square of side `spacing`: J = sum m_p (|x_p - c|^2 + spacing^2 / 6)."""
-    mass, positions = particles.mass[block.points], particles.x[block.points]
-    total = jnp.sum(mass)
-    centre = jnp.dot(mass, positions) / total
-    arm = positions - centre
-    inertia = jnp.dot(mass, arm[:, 0] * arm[:, 0] + arm[:, 1] * arm[:, 1] + spacing * spacing / 6.0)
-    return total, centre, inertia
-
-
-def node_positions(layout, dtype):
-    """(nx, ny, 2) positions of the node arrays' nodes [m] (ghosts included)."""
-    nx, ny = layout.nodes
-    i, j = jnp.meshgrid(jnp.arange(nx, dtype=dtype), jnp.arange(ny, dtype=dtype), indexing="ij")
-    origin = jnp.asarray(layout.origin, dtype)
-    return jnp.stack([i - layout.ghost, j - layout.ghost], axis=-1) * layout.cell + origin
-
-
-def cross(arm, vectors):
-    """z-component of arm x vector, (...,)."""
-    return arm[..., 0] * vectors[..., 1] - arm[..., 1] * vectors[..., 0]
-
-
-def spin_velocity(spin, arm):
-    """omega e_z x arm, (..., 2)."""
-    return jnp.stack([-spin * arm[..., 1], spin * arm[..., 0]], axis=-1)
-
-
-class PrescribedStep(NamedTuple):
-    """A prescribed body's velocity (2,) at the start and at the end of a step [m/s]."""
-
-    before: jax.Array
-    after: jax.Array
-
-
-class RigidStep(NamedTuple):
-    """A rigid body in one step: mass M [kg/m], centre of mass c (2,) [m], polar moment J about
-    c [kg m^2/m]; free_velocity V + dt g (2,), its velocity if nothing touched it; the velocity
-    (2,) and spin () that the bodies around it meet in this step's contact."""
-
-    mass: jax.Array
-    centre: jax.Array
-    inertia: jax.Array
-    free_velocity: jax.Array
-    contact_velocity: jax.Array
-    contact_spin: jax.Array
-
-
-def kinematic_motions(params, state, structure, time_new):
-    """{body: PrescribedStep or RigidStep}: how each prescribed and rigid body moves in this
-    step's contact.
-
-    A rigid body's contact velocity is V + dt (g + F / M) and spin omega + dt T / J, with the
-    force F and torque T of its contact pairs in the last step (bonded interfaces are solved
-    in the step itself: `bonded_rigid_motions`). This predictor makes the nodes of a body resting on
-    another move exactly with it once the force is steady; meeting the free velocity V + dt g
-    instead left a gap of g dt^2 per step between a resting rigid footing and the sand under
-    it (0.3 mm in 0.3 s), with the contact still active.
-    """
-    dtype = state.particles.x.dtype
-    gravity = jnp.asarray(structure.gravity, dtype)
-    dt = structure.dt
-    motions = {}
-    for block in structure.blocks_of("prescribed"):
-        velocity = params["bodies"][block.name]["velocity"]
-        before = prescribed_velocity(block, velocity, time_new - dt)
-        motions[block.name] = PrescribedStep(before, prescribed_velocity(block, velocity, time_new))
-    for block in structure.blocks_of("rigid"):
-        mass, centre, inertia = rigid_body_frame(state.particles, block, structure.point_spacing)
-        motion = state.rigid[block.name]
-        free = motion.velocity + dt * gravity
-        motions[block.name] = RigidStep(
-            mass, centre, inertia, free, free + dt * motion.force / mass, motion.spin + dt * motion.torque / inertia
-        )
-    return motions
-
-
-def bonded_rigid_motions(structure, motions, mass, velocity, occupied, positions):
-    """Rigid bodies bonded to free fields (an interface that is not a contact pair) move with
-    the sand they hold: the contact velocity V and spin omega solve the momentum balance of the
-    body and the bonded nodes together,
-
-        M (V - V*) + sum_I m_I (V + omega x r_I - v_I) = 0
-        J (omega - omega*) + sum_I r_I x m_I (V + omega x r_I - v_I) = 0,
-
-    a 3 x 3 symmetric positive definite system over the nodes where both fields have mass
-    (m_I, v_I: the free field's mass and trial velocity, r_I = x_I - c; V*, omega*: the motion
-    predicted from the contact pairs alone). Predicting the bonded force from the last step
-    instead, as for contact pairs, feeds back with gain -sum m_I / M: it diverged as soon as
-    the bonded sand outweighed the body (bspline2's wider stencil, docs/stability.md)."""
-    bonded = {}
-    for interface in structure.interfaces:
-        if interface.contact is None and (interface.kinematic_first or interface.kinematic_second):
-            body, free = (interface.first, interface.second) if interface.kinematic_first else (interface.second, interface.first)
-            bonded.setdefault(body, []).append(free)
-    motions = dict(motions)
-    for block in structure.blocks_of("rigid"):
-        if block.field not in bonded:
-            continue
-        body = motions[block.name]
-        arm = positions - body.centre
-        held, momentum = jnp.zeros_like(mass[0]), jnp.zeros_like(velocity[0])     # bonded mass, momentum at each node
-        for free in bonded[block.field]:
-            shared = occupied[block.field] & occupied[free]
-            held = held + jnp.where(shared, mass[free], 0.0)
-            momentum = momentum + jnp.where(shared[..., None], mass[free][..., None] * velocity[free], 0.0)
-        held_mass, moment_x, moment_y = jnp.sum(held), jnp.sum(held * arm[..., 0]), jnp.sum(held * arm[..., 1])
-        held_inertia = jnp.sum(held * (arm[..., 0] * arm[..., 0] + arm[..., 1] * arm[..., 1]))
-        zero = jnp.zeros_like(held_mass)
-        system = jnp.stack([
-            jnp.stack([body.mass + held_mass, zero, -moment_y]),
-            jnp.stack([zero, body.mass + held_mass, moment_x]),
-            jnp.stack([-moment_y, moment_x, body.inertia + held_inertia]),
-        ])
-        total = jnp.sum(momentum, axis=(0, 1))
-        right = jnp.concatenate([body.mass * body.contact_velocity + total,
-                                 (body.inertia * body.contact_spin + jnp.sum(cross(arm, momentum)))[None]])
-        solved = jnp.linalg.solve(system, right)
-        motions[block.name] = body._replace(contact_velocity=solved[:2], contact_spin=solved[2])
-    return motions
-
-
-def impose_kinematic_fields(velocity, structure, motions, positions):
-    """Node velocities of prescribed fields set to their velocity, of rigid fields to their
-    contact motion V + omega x (x_I - c)."""
-    for block in structure.blocks_of("prescribed"):
-        velocity = velocity.at[block.field].set(jnp.broadcast_to(motions[block.name].after, velocity.shape[1:]))
-    for block in structure.blocks_of("rigid"):
-        rigid = motions[block.name]
-        arm = positions - rigid.centre
-        velocity = velocity.at[block.field].set(rigid.contact_velocity + spin_velocity(rigid.contact_spin, arm))
-    return velocity
-
-
-def received_impulses(structure, impulses, contacts_only=False):
-    """{field: (nx, ny, 2) total impulse the field received from all interfaces} (from the
-    contact pairs alone with `contacts_only`)."""
-    received = {}
-    for interface, impulse in zip(structure.interfaces, impulses):
-        if contacts_only and interface.contact is None:
-            continue
-        received[interface.first] = received.get(interface.first, 0.0) + impulse
-        received[interface.second] = received.get(interface.second, 0.0) - impulse
-    return received
-
-
-def grid_to_particles(particles, stencil, velocity_old, velocity_new, field, transfer, flip, dt, layout):
+def grid_to_particles(particles, stencil, velocity_old, velocity_new, field, memory, dt, layout):
     """Points take the new grid velocity of their field and move: x_p <- x_p + dt sum N_I v_I.
 
-    FLIP/PIC: v_p <- flip (v_p + sum N_I dv_I) + (1 - flip) sum N_I v_I.
-    APIC: v_p <- sum N_I v_I (its C_p is set with the velocity gradient, in `make_step`).
+    Their velocity keeps a fraction `memory` (static) of their own FLIP update, the rest is
+    the grid's: v_p <- sum N_I v_I + memory (v_p + sum N_I dv_I - sum N_I v_I). With
+    transfer = "flip", memory = flip (per step); with "apic", memory = exp(-dt / tau) (see
+    `transfer_memory`), and C_p is set with the velocity gradient in `make_step`.
     """
     support = stencil.weights.shape[1]
-    blend = transfer == "flip" and flip > 0.0     # static: APIC and pure PIC gather v_I only
+    blend = memory > 0.0     # static: without memory only v_I is gathered
     nodal = jnp.concatenate([velocity_new, velocity_new - velocity_old], axis=-1) if blend else velocity_new
     gathered = gather_from_nodes(layout, stencil.base, nodal, support, field)
     at_points = sum_over_stencil(stencil.weights[..., None] * gathered)
     grid_velocity = at_points[:, :2]
     velocity = grid_velocity
     if blend:
-        velocity = flip * (particles.v + at_points[:, 2:]) + (1.0 - flip) * grid_velocity
+        velocity = grid_velocity + memory * (particles.v + at_points[:, 2:] - grid_velocity)
     return particles.replace(x=particles.x + dt * grid_velocity, v=velocity)
-
-
-def resultant(impulse, arm, dt):
-    """(force (2,), torque ()) of nodal impulses (nx, ny, 2) or None, over one step dt, about
-    the point at `arm` (nx, ny, 2) from every node."""
-    if impulse is None:
-        return jnp.zeros(2, arm.dtype), jnp.zeros((), arm.dtype)
-    return jnp.sum(impulse, axis=(0, 1)) / dt, jnp.sum(cross(arm, impulse)) / dt
-
-
-def move_kinematic_bodies(state, start, structure, motions, impulses, positions):
-    """Prescribed points move at their velocity from their positions `start` (N, 2) at the
-    start of the step; rigid bodies take the impulses their fields received
-    (dV = sum J / M, d omega = sum (x_I - c) x J / J_c) and move as one body, and keep the
-    force and torque of their contact pairs for the next step's prediction.
-
-    Returns (state, reactions {prescribed body: (2,) force that kept it on its path})."""
-    particles, dt = state.particles, structure.dt
-    x, v, rigid = particles.x, particles.v, dict(state.rigid)
-    received = received_impulses(structure, impulses)
-    pushed = received_impulses(structure, impulses, contacts_only=True)
-    gravity = jnp.asarray(structure.gravity, x.dtype)
-    reactions = {}
-    for block in structure.blocks_of("prescribed"):
-        before, after = motions[block.name]
-        mass = jnp.sum(particles.mass[block.points])
-        impulse = received.get(block.field)
-        pushed = 0.0 if impulse is None else jnp.sum(impulse, axis=(0, 1))
-        reactions[block.name] = mass * (after - before) / dt - mass * gravity - pushed / dt
-        count = block.stop - block.start
-        x = x.at[block.points].set(start[block.points] + dt * after)
-        v = v.at[block.points].set(jnp.broadcast_to(after, (count, 2)))
-    for block in structure.blocks_of("rigid"):
-        body, motion = motions[block.name], state.rigid[block.name]
-        force, torque = resultant(received.get(block.field), positions - body.centre, dt)
-        velocity = body.free_velocity + dt * force / body.mass
-        spin = motion.spin + dt * torque / body.inertia
-        force, torque = resultant(pushed.get(block.field), positions - body.centre, dt)
-        turn = dt * spin
-        cos, sin = jnp.cos(turn), jnp.sin(turn)
-        arm = start[block.points] - body.centre
-        turned = jnp.stack([cos * arm[:, 0] - sin * arm[:, 1], sin * arm[:, 0] + cos * arm[:, 1]], axis=-1)
-        x = x.at[block.points].set(body.centre + dt * velocity + turned)
-        v = v.at[block.points].set(velocity + spin_velocity(spin, turned))
-        rigid[block.name] = motion.replace(
-            translation=motion.translation + dt * velocity, rotation=motion.rotation + turn,
-            velocity=velocity, spin=spin, force=force, torque=torque,
-        )
-    return state.replace(particles=particles.replace(x=x, v=v), rigid=rigid), reactions
 
 
 def remap_velocity(particles, stencil, field, structure, mass, constrain, floor):
@@ -601,6 +397,19 @@ def evolving_leaves(structure, state):
     )
 
 
+def transfer_memory(transfer, flip, relaxation, dt, crossing_time):
+    """The fraction of each point's own (FLIP) velocity it keeps per step: `flip` with
+    transfer = "flip" (per step, as given); with "apic", exp(-dt / tau), tau = relaxation *
+    crossing_time (the time the slowest free body's p-wave takes to cross a cell), so that
+    the points' velocity relaxes towards the grid's (APIC) one over a fixed time whatever dt;
+    0 (plain APIC) with relaxation = 0."""
+    if transfer == "flip":
+        return float(flip)
+    if relaxation <= 0.0 or not math.isfinite(crossing_time):
+        return 0.0
+    return math.exp(-dt / (relaxation * crossing_time))
+
+
 def make_step(structure: Structure):
     """The pure step function of a scene: step(params, state) -> (state, diagnostics)."""
     layout, dt = structure.layout, structure.dt
@@ -625,31 +434,29 @@ def make_step(structure: Structure):
         offsets = None
         if structure.transfer == "apic":
             offsets = layout.node_offsets(stencil.base, particles.x, stencil.weights.shape[1])
+        frictions = {name: values["friction"] for name, values in params.get("contacts", {}).items()}
         nodes = jax.named_call(particles_to_grid, name="particles_to_grid")(particles, stencil, offsets, field, structure)
         velocity_old, velocity_new = jax.named_call(update_grid_velocity, name="update_grid")(
             nodes, dt, structure.damping, constrain, floor
         )
-        impulses, motions, positions = [], {}, None
+        impulses, motions = [], {}
         if structure.has_kinematic_bodies:
             time_new = (state.step + 1).astype(particles.x.dtype) * dt
             positions = node_positions(layout, particles.x.dtype)
-            motions = kinematic_motions(params, state, structure, time_new)
-            if structure.has_bonded_rigid_bodies:
-                motions = bonded_rigid_motions(structure, motions, nodes.mass, velocity_new, nodes.mass > floor, positions)
+            motions = free_motions(params, state, structure, time_new)
+            grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, nodes.mass > floor)
+            motions = jax.named_call(solve_rigid_motions, name="rigid_bodies")(structure, motions, grid, frictions, positions)
             velocity_new = impose_kinematic_fields(velocity_new, structure, motions, positions)
         if structure.interfaces:
-            frictions = {name: values["friction"] for name, values in params.get("contacts", {}).items()}
             velocity_new, impulses = jax.named_call(resolve_interfaces, name="contact")(
                 structure.interfaces, nodes.mass, velocity_new, nodes.mass_gradient, frictions, nodes.mass > floor
             )
             velocity_new = constrain(velocity_new)
         start = particles.x
         particles = jax.named_call(grid_to_particles, name="grid_to_particles")(
-            particles, stencil, velocity_old, velocity_new, field, structure.transfer, structure.flip, dt, layout
+            particles, stencil, velocity_old, velocity_new, field, structure.memory, dt, layout
         )
-        state, reactions = move_kinematic_bodies(
-            state.replace(particles=particles), start, structure, motions, impulses, positions
-        )
+        state, reactions = move_kinematic_bodies(state.replace(particles=particles), start, structure, motions, impulses)
         particles = state.particles
         if structure.update == "musl":
             velocity_new = jax.named_call(remap_velocity, name="remap_velocity")(

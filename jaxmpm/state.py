@@ -64,19 +64,14 @@ class RigidMotion:
       rotation: () angle turned since t = 0, counter-clockwise positive [rad].
       velocity: (2,) velocity of its centre of mass [m/s].
       spin: () angular velocity, counter-clockwise positive [rad/s].
-      force: (2,) force the bodies in contact pairs with it exerted on it in the last step [N/m].
-      torque: () their moment about its centre of mass in that step [N m/m].
-    The last step's force and torque predict the velocity the body's nodes take in the next
-    contact (see `solver.kinematic_motions`); bodies bonded to it are not in them (their
-    force is solved within the step: `solver.bonded_rigid_motions`).
+    Each step solves the velocity and spin together with the impulses the body receives
+    (`bodies.solve_rigid_motions`).
     """
 
     translation: jax.Array
     rotation: jax.Array
     velocity: jax.Array
     spin: jax.Array
-    force: jax.Array
-    torque: jax.Array
 
     def replace(self, **changes):
         return dataclasses.replace(self, **changes)

@@ -63,6 +63,9 @@ PRESETS = {
     "accurate": {"shape": "bspline2", "transfer": "apic", "flip": 0.99, "ppc": 3, "dtype": "float64", "update": "musl"},
 }
 DEFAULT_PRESET = "balanced"
+# With APIC, the points' own velocity fades over this many cell crossings of the slowest free
+# body's p-wave (solver.transfer_memory; docs/convergence.md measures the choice).
+DEFAULT_RELAXATION = 10.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,7 +75,9 @@ class Numerics:
     preset: "fast" | "balanced" (the default) | "accurate" fills every choice left as None
     (`PRESETS`); a value given explicitly overrides the preset's. update: "musl" (strain rate
     from velocities re-mapped after the particle update, which keeps nodes with tiny mass from
-    polluting stresses) or "usl".
+    polluting stresses) or "usl". relaxation: with APIC, the time over which the points'
+    own velocity fades into the grid's, in cell crossings of the slowest free body's p-wave
+    (0: plain APIC, whose dissipation grows as dt shrinks).
     """
 
     preset: str = DEFAULT_PRESET
@@ -83,6 +88,7 @@ class Numerics:
     dtype: str | None = None
     damping: float = 0.0
     update: str | None = None
+    relaxation: float = DEFAULT_RELAXATION
     # The values the preset filled in (not given by the user): `to_dict` leaves them out, and
     # `dataclasses.replace(numerics, preset=...)` fills them again from the new preset.
     filled: dict | None = dataclasses.field(default=None, compare=False, repr=False)

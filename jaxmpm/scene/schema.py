@@ -10,7 +10,7 @@ the grid, a probe naming a body) are in `jaxmpm.scene.checks`.
 from jaxmpm.keys import REQUIRED, Key, Section
 from jaxmpm.materials import MODELS
 from jaxmpm.scene.model import (
-    BOUNDARY_KINDS, DEFAULT_PRESET, GEOMETRIES, KINEMATICS, NUMERICS_CHOICES, PRESETS, PROBE_KINDS, SNAPSHOT_FIELDS,
+    BOUNDARY_KINDS, DEFAULT_PRESET, DEFAULT_RELAXATION, GEOMETRIES, KINEMATICS, NUMERICS_CHOICES, PRESETS, PROBE_KINDS, SNAPSHOT_FIELDS,
 )
 
 
@@ -66,6 +66,11 @@ NUMERICS = Section((
         default=None, choices=NUMERICS_CHOICES["dtype"]),
     Key("update", "str", "'musl' (strain rate from velocities re-mapped after the particle update) or "
         "'usl'" + _from_preset("update"), default=None, choices=NUMERICS_CHOICES["update"]),
+    Key("relaxation", "float", "with transfer = 'apic': the points keep a memory of their own (FLIP) "
+        "velocity that fades into the grid's over this many crossings of a cell by the slowest free body's "
+        "p-wave, a fixed time whatever dt, so results do not drift with dt; 0 gives plain APIC, whose "
+        "dissipation grows with the number of steps (docs/convergence.md)", default=DEFAULT_RELAXATION, low=0.0,
+        low_inclusive=True),
     Key("damping", "float", "local (Cundall) damping coefficient: each node's force is reduced by damping "
         "|f| sign(v); for quasi-static settling, never set by a preset", default=0.0, low=0.0, high=1.0,
         low_inclusive=True, high_inclusive=True),

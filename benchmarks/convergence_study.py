@@ -1,0 +1,246 @@
+"""Time-step and cell convergence of the headline quantities: the tables of docs/convergence.md.
+
+    python benchmarks/convergence_study.py                 # every study (about 25 min on 2 cores)
+    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | examples | cells
+
+Each run is a forward run of a scene at some numerics; the quantities are read at every
+output time and the largest relative change between two runs is reported.
+
+- wall: a small rigid wall (0.05 x 0.35 m, concrete density) on a 0.1 m sand foundation holds a
+  0.3 m rate-independent Drucker-Prager backfill and is released: its top's horizontal
+  displacement at 0.1 and 0.2 s, at cfl 0.4, 0.2, 0.1, with plain APIC (numerics.relaxation
+  = 0, the transfer before 2026-12-05) and with the default relaxation.
+- stiff: the same wall as a rigid body and as a free elastic body (E = 3 and 30 GPa; the
+  elastic wall's p-wave sets a step 20-60 times shorter).
+- examples: the headline quantities of examples/retaining_wall.toml (wall top, rotation;
+  first 0.4 s), pile_driving.toml (head force at 5 and 10 cm, heave; first 0.2 s) and
+  column_collapse.toml (front, centre of mass; the whole 1 s) at the shipped cfl and at half.
+- cells: the small wall at h, h/2, h/4 (ppc 2) and at h with ppc 3: observed order and the
+  Richardson-extrapolated value p = log2((q_h - q_h/2) / (q_h/2 - q_h/4)),
+  q* = q_h/4 + (q_h/4 - q_h/2) / (2^p - 1).
+A study, not a test: it prints markdown tables.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+WALL_SCENE = """
+[scene]
+name = "small_wall"
+gravity = [0.0, -9.81]
+duration = 0.2
+cfl = 0.4
+output_every = 0.02
+[grid]
+size = [1.0, 0.55]
+cell = 0.025
+boundaries = {{ left = "slip", right = "slip", bottom = "fixed", top = "free" }}
+[numerics]
+shape = "linear"
+transfer = "apic"
+ppc = 2
+dtype = "float64"
+[materials.sand]
+model = "drucker_prager"
+density = 1800.0
+young = 5.0e6
+poisson = 0.3
+friction_angle = 30.0
+[materials.concrete]
+model = "linear_elastic"
+density = 2400.0
+young = {young}
+poisson = 0.2
+[[bodies]]
+name = "sand"
+material = "sand"
+region = {{ polygon = [[0.0, 0.0], [1.0, 0.0], [1.0, 0.4], [0.55, 0.4], [0.55, 0.1], [0.0, 0.1]] }}
+initial_stress = {{ geostatic = {{ k0 = "jaky" }} }}
+[[bodies]]
+name = "wall"
+material = "concrete"
+region = {{ rectangle = [[0.5, 0.1], [0.55, 0.45]] }}
+kinematics = {{ type = "{kinematics}" }}
+[[contacts]]
+pair = ["sand", "wall"]
+friction = 0.4
+[[probes]]
+name = "wall_top"
+kind = "displacement"
+at = [0.525, 0.45]
+"""
+
+
+def small_wall(kinematics="rigid", young=30.0e9, **values):
+    """The small wall scene (module docstring) with `values` ({dotted key: value}) set."""
+    import jaxmpm
+
+    scene = jaxmpm.Scene.from_toml(WALL_SCENE.format(kinematics=kinematics, young=young))
+    for key, value in values.items():
+        scene = scene.with_value(key, value)
+    return scene
+
+
+def run(scene):
+    """(time (T,), probes {name: (T, k)}, steps, wall seconds) of a forward run."""
+    import jaxmpm
+
+    started = time.perf_counter()
+    sim = jaxmpm.Simulation(scene)
+    result = sim.run(progress=False)
+    return np.asarray(result.time), {k: np.asarray(v) for k, v in result.probes.items()}, sim.steps, time.perf_counter() - started
+
+
+def at_times(time_axis, values, times):
+    return np.asarray([values[int(np.argmin(np.abs(time_axis - t)))] for t in times])
+
+
+def relative_change(a, b):
+    """max |a - b| / max |b| over the rows (the output times)."""
+    return float(np.max(np.abs(np.asarray(a) - np.asarray(b))) / max(np.max(np.abs(np.asarray(b))), 1e-30))
+
+
+def wall_study():
+    print("\n### Small rigid wall: top displacement [mm] at 0.1 / 0.2 s\n")
+    print("| transfer | cfl | dt [µs] | steps | top at 0.1 s | top at 0.2 s | change from the half step | run [s] |")
+    print("|---|---|---|---|---|---|---|---|")
+    for relaxation, label in ((0.0, "plain APIC (relaxation 0)"), (None, "APIC, default relaxation")):
+        rows = []
+        for cfl in (0.4, 0.2, 0.1):
+            values = {"scene.cfl": cfl}
+            if relaxation is not None:
+                values["numerics.relaxation"] = relaxation
+            scene = small_wall(**values)
+            t, probes, steps, seconds = run(scene)
+            top = -1e3 * at_times(t, probes["wall_top"][:, 0], (0.1, 0.2))
+            rows.append((cfl, scene, steps, top, seconds))
+        for index, (cfl, scene, steps, top, seconds) in enumerate(rows):
+            change = f"{100 * relative_change(top, rows[index + 1][3]):.1f} %" if index + 1 < len(rows) else ""
+            dt = scene.duration / steps
+            print(f"| {label} | {cfl} | {1e6 * dt:.0f} | {steps} | {top[0]:.2f} | {top[1]:.2f} | {change} | {seconds:.0f} |")
+
+
+def stiff_study():
+    print("\n### Rigid and stiff elastic wall: top displacement [mm] at 0.1 / 0.2 s\n")
+    print("| wall | steps | top at 0.1 s | top at 0.2 s | against the rigid wall | run [s] |")
+    print("|---|---|---|---|---|---|")
+    rigid = None
+    for kinematics, young in (("rigid", 30.0e9), ("free", 3.0e9), ("free", 30.0e9)):
+        t, probes, steps, seconds = run(small_wall(kinematics, young))
+        top = -1e3 * at_times(t, probes["wall_top"][:, 0], (0.1, 0.2))
+        rigid = top if rigid is None else rigid
+        label = "rigid" if kinematics == "rigid" else f"elastic, E = {young / 1e9:g} GPa"
+        change = "" if kinematics == "rigid" else f"{100 * relative_change(top, rigid):.1f} %"
+        print(f"| {label} | {steps} | {top[0]:.2f} | {top[1]:.2f} | {change} | {seconds:.0f} |")
+
+
+def pile_force(t, probes):
+    """Head force [N] averaged within 5 mm of 5 and 10 cm of penetration, and the heave [mm]
+    at the end (examples/pile_driving.toml)."""
+    force = -(probes["tip_reaction"][:, 1] + probes["shaft_reaction"][:, 1])
+    depth = -probes["penetration"][:, 1]
+    means = [float(force[(depth > d - 0.005) & (depth <= d + 0.005)].mean()) for d in (0.05, 0.1)]
+    return np.asarray(means + [1e3 * float(probes["heave"][-1, 1])])
+
+
+def example_quantities(name, t, probes):
+    if name == "retaining_wall":
+        times = np.arange(0.05, 0.4001, 0.05)
+        return {"wall top x [mm]": -1e3 * at_times(t, probes["wall_top"][:, 0], times),
+                "rotation [deg]": np.degrees(at_times(t, probes["rotation"][:, 0], times))}
+    if name == "pile_driving":
+        values = pile_force(t, probes)
+        return {"head force at 5 / 10 cm [N]": values[:2], "heave [mm]": values[2:]}
+    times = np.arange(0.1, 1.0001, 0.1)
+    return {"corner x [mm]": 1e3 * at_times(t, probes["corner"][:, 0], times),
+            "centre of mass x [mm]": 1e3 * at_times(t, probes["mass_centre"][:, 0], times)}
+
+
+def examples_study():
+    import jaxmpm
+
+    print("\n### Examples at the shipped cfl and at half (the largest change over the output times)\n")
+    print("| example | quantity | relaxation | at cfl 0.4 (last time) | at cfl 0.2 | change | runs [s] |")
+    print("|---|---|---|---|---|---|---|")
+    durations = {"retaining_wall": 0.4, "pile_driving": 0.2, "column_collapse": 1.0}
+    for name, duration in durations.items():
+        for relaxation in (0.0, None):
+            found = {}
+            seconds = 0.0
+            for cfl in (0.4, 0.2):
+                scene = jaxmpm.load_scene(ROOT / "examples" / f"{name}.toml")
+                scene = scene.with_value("scene.duration", duration).with_value("scene.cfl", cfl)
+                if relaxation is not None:
+                    scene = scene.with_value("numerics.relaxation", relaxation)
+                try:
+                    t, probes, _, spent = run(scene)
+                except jaxmpm.SimulationError as error:
+                    print(f"| {name} | (failed at cfl {cfl}: {error}) | | | | | |")
+                    break
+                seconds += spent
+                found[cfl] = example_quantities(name, t, probes)
+            if len(found) < 2:
+                continue
+            label = "0 (plain APIC)" if relaxation is not None else f"{jaxmpm.Numerics().relaxation:g} (default)"
+            for quantity, coarse in found[0.4].items():
+                fine = found[0.2][quantity]
+                print(f"| {name} | {quantity} | {label} | {coarse[-1]:.4g} | {fine[-1]:.4g} | "
+                      f"{100 * relative_change(coarse, fine):.1f} % | {seconds:.0f} |")
+
+
+def cells_study():
+    print("\n### Small rigid wall under cell refinement (cfl 0.4): top displacement [mm] at 0.2 s\n")
+    print("| cell [m] | ppc | points | steps | top at 0.1 s | top at 0.2 s | run [s] |")
+    print("|---|---|---|---|---|---|---|")
+    tops = []
+    for cell, ppc in ((0.025, 2), (0.0125, 2), (0.00625, 2), (0.025, 3)):
+        scene = small_wall(**{"grid.cell": cell, "numerics.ppc": ppc})
+        t, probes, steps, seconds = run(scene)
+        top = -1e3 * at_times(t, probes["wall_top"][:, 0], (0.1, 0.2))
+        import jaxmpm
+        points = jaxmpm.Simulation(scene).point_count
+        print(f"| {cell} | {ppc} | {points} | {steps} | {top[0]:.2f} | {top[1]:.2f} | {seconds:.0f} |")
+        if ppc == 2:
+            tops.append(top)
+    coarse, middle, fine = tops
+    for index, time_label in enumerate(("0.1 s", "0.2 s")):
+        ratio = (coarse[index] - middle[index]) / (middle[index] - fine[index])
+        if ratio > 0:
+            order = math.log2(ratio)
+            extrapolated = fine[index] + (fine[index] - middle[index]) / (2 ** order - 1)
+            print(f"\nat {time_label}: observed order {order:.2f}, Richardson value {extrapolated:.2f} mm; "
+                  f"error of h = 0.025: {100 * abs(coarse[index] - extrapolated) / abs(extrapolated):.0f} %")
+        else:
+            print(f"\nat {time_label}: not monotone (differences {coarse[index] - middle[index]:.2f}, "
+                  f"{middle[index] - fine[index]:.2f} mm): no order")
+
+
+STUDIES = {"wall": wall_study, "stiff": stiff_study, "examples": examples_study, "cells": cells_study}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--study", choices=tuple(STUDIES), action="append", help="run only these (repeatable)")
+    arguments = parser.parse_args()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    print(f"jaxmpm convergence study, {time.strftime('%Y-%m-%d')}, {jax.devices()[0].device_kind}, "
+          f"{__import__('os').cpu_count()} cores")
+    for name in arguments.study or STUDIES:
+        STUDIES[name]()
+        sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,244 @@
+"""Prescribed and rigid bodies on the grid: how each kind meets the free fields in a step.
+
+A prescribed body moves on its given path: its field's nodes take its velocity, it acts as
+infinitely heavy in contact, and the impulse it receives is reported as the reaction that
+kept it on its path.
+
+A rigid body moves as one body. Its velocity V and spin omega at the end of the step are
+solved *together* with the impulses of every interface it has with free fields (contact pairs
+and bonded interfaces): with u_I(V, omega) = V + omega e_z x (x_I - c) at each node,
+
+    M (V - V*)         = sum_I J_I(u_I)                      V* = V^n + dt g
+    J_c (omega - w*)   = sum_I (x_I - c) x J_I(u_I)          w* = omega^n
+
+where J_I(u) is the impulse the body receives at node I when the free field's trial
+velocity v_I is corrected against a body moving at u (`contact.interface_impulse`: Coulomb
+contact, only where closing; or full no-slip for bonded fields). The free nodes then end the
+step moving exactly as the body does, and the body moves as the impulses it received say:
+no lag and no feedback. The residual is piecewise linear in (V, omega), so Newton's method
+with its exact Jacobian (an active-set method) reaches the solution in a few iterations;
+its derivative is that of the implicit function theorem, taken by one last Newton step.
+
+The earlier scheme predicted the body's velocity from the last step's contact force and
+corrected it after the contact: a lagged explicit coupling whose error is first order in dt
+with a large constant (a rigid wall moved ten times too far at the default step,
+docs/convergence.md) and whose feedback gain m_contact / M made it unstable for bodies
+lighter than the sand they touch.
+"""
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxmpm.contact import interface_impulse, interface_normals
+
+NEWTON_ITERATIONS = 8   # the active set settles in 2-4 on the example scenes (docs/convergence.md)
+
+
+class PrescribedStep(NamedTuple):
+    """A prescribed body's velocity (2,) at the start and at the end of a step [m/s]."""
+
+    before: jax.Array
+    after: jax.Array
+
+
+class RigidStep(NamedTuple):
+    """A rigid body in one step: mass M [kg/m], centre of mass c (2,) [m], polar moment J about
+    c [kg m^2/m] at the start of the step; the velocity (2,) and spin () it ends the step with
+    (before the solve: V + dt g and omega, its motion if nothing touched it)."""
+
+    mass: jax.Array
+    centre: jax.Array
+    inertia: jax.Array
+    velocity: jax.Array
+    spin: jax.Array
+
+
+def prescribed_velocity(block, velocity, time):
+    """A prescribed body's velocity (2,) at `time` [s]: the constant `velocity` (2,), or the
+    table `velocity` (K, 2) at `block.times`, linear in between, held beyond the ends."""
+    if block.times is None:
+        return velocity
+    times = jnp.asarray(block.times, velocity.dtype)
+    return jnp.stack([jnp.interp(time, times, velocity[:, axis]) for axis in range(2)])
+
+
+def rigid_body_frame(particles, block, spacing):
+    """(mass M, centre of mass c (2,), polar moment J about c) of a rigid body from its points,
+    each a square of side `spacing`: J = sum m_p (|x_p - c|^2 + spacing^2 / 6)."""
+    mass, positions = particles.mass[block.points], particles.x[block.points]
+    total = jnp.sum(mass)
+    centre = jnp.dot(mass, positions) / total
+    arm = positions - centre
+    inertia = jnp.dot(mass, arm[:, 0] * arm[:, 0] + arm[:, 1] * arm[:, 1] + spacing * spacing / 6.0)
+    return total, centre, inertia
+
+
+def node_positions(layout, dtype):
+    """(nx, ny, 2) positions of the node arrays' nodes [m] (ghosts included)."""
+    nx, ny = layout.nodes
+    i, j = jnp.meshgrid(jnp.arange(nx, dtype=dtype), jnp.arange(ny, dtype=dtype), indexing="ij")
+    origin = jnp.asarray(layout.origin, dtype)
+    return jnp.stack([i - layout.ghost, j - layout.ghost], axis=-1) * layout.cell + origin
+
+
+def cross(arm, vectors):
+    """z-component of arm x vector, (...,)."""
+    return arm[..., 0] * vectors[..., 1] - arm[..., 1] * vectors[..., 0]
+
+
+def spin_velocity(spin, arm):
+    """omega e_z x arm, (..., 2)."""
+    return jnp.stack([-spin * arm[..., 1], spin * arm[..., 0]], axis=-1)
+
+
+def free_motions(params, state, structure, time_new):
+    """{body: PrescribedStep or RigidStep}: each prescribed body's velocity over the step, and
+    each rigid body's frame with the motion it would end the step with if nothing touched it."""
+    dtype = state.particles.x.dtype
+    gravity = jnp.asarray(structure.gravity, dtype)
+    dt = structure.dt
+    motions = {}
+    for block in structure.blocks_of("prescribed"):
+        velocity = params["bodies"][block.name]["velocity"]
+        before = prescribed_velocity(block, velocity, time_new - dt)
+        motions[block.name] = PrescribedStep(before, prescribed_velocity(block, velocity, time_new))
+    for block in structure.blocks_of("rigid"):
+        mass, centre, inertia = rigid_body_frame(state.particles, block, structure.point_spacing)
+        motion = state.rigid[block.name]
+        motions[block.name] = RigidStep(mass, centre, inertia, motion.velocity + dt * gravity, motion.spin)
+    return motions
+
+
+def impose_kinematic_fields(velocity, structure, motions, positions):
+    """Node velocities of prescribed fields set to their velocity, of rigid fields to their
+    motion V + omega x (x_I - c)."""
+    for block in structure.blocks_of("prescribed"):
+        velocity = velocity.at[block.field].set(jnp.broadcast_to(motions[block.name].after, velocity.shape[1:]))
+    for block in structure.blocks_of("rigid"):
+        rigid = motions[block.name]
+        velocity = velocity.at[block.field].set(rigid.velocity + spin_velocity(rigid.spin, positions - rigid.centre))
+    return velocity
+
+
+def rigid_interfaces(structure):
+    """The interfaces between a rigid body's field and a free field, as (interface, rigid block)."""
+    rigid = {block.field: block for block in structure.blocks_of("rigid")}
+    found = []
+    for interface in structure.interfaces:
+        if interface.kinematic_first and interface.kinematic_second:
+            continue
+        for side in (interface.first, interface.second):
+            if side in rigid:
+                found.append((interface, rigid[side]))
+    return tuple(found)
+
+
+class Grid(NamedTuple):
+    """The node values the rigid-body solve reads: mass (F, nx, ny), trial velocity and
+    outward mass gradient (F, nx, ny, 2) (None without contact pairs), occupied (F, nx, ny)."""
+
+    mass: jax.Array
+    velocity: jax.Array
+    mass_gradient: jax.Array | None
+    occupied: jax.Array
+
+
+def rigid_residual(motion, grid, frictions, structure, frames, positions):
+    """Momentum balance of every rigid body, (3 K,): M (V - V*) - sum J and
+    J_c (omega - w*) - sum r x J, with `motion` (3 K,) the bodies' (V_x, V_y, omega) in
+    block order and `frames` their RigidStep before the solve."""
+    blocks = structure.blocks_of("rigid")
+    velocity = grid.velocity
+    for index, block in enumerate(blocks):
+        arm = positions - frames[block.name].centre
+        velocity = velocity.at[block.field].set(motion[3 * index:3 * index + 2] + spin_velocity(motion[3 * index + 2], arm))
+    received = {block.name: jnp.zeros_like(velocity[0]) for block in blocks}
+    for interface, block in rigid_interfaces(structure):
+        normal = interface_normals(interface, grid.mass, grid.mass_gradient) if interface.contact is not None else None
+        impulse = interface_impulse(interface, grid.mass, velocity, normal, frictions.get(interface.contact), grid.occupied)
+        received[block.name] = received[block.name] + (impulse if interface.first == block.field else -impulse)
+    balances = []
+    for index, block in enumerate(blocks):
+        frame = frames[block.name]
+        impulse = received[block.name]
+        linear = frame.mass * (motion[3 * index:3 * index + 2] - frame.velocity) - jnp.sum(impulse, axis=(0, 1))
+        angular = frame.inertia * (motion[3 * index + 2] - frame.spin) - jnp.sum(cross(positions - frame.centre, impulse))
+        balances.append(jnp.concatenate([linear, angular[None]]))
+    return jnp.concatenate(balances)
+
+
+def solve_rigid_motions(structure, motions, grid, frictions, positions):
+    """Each rigid body's end-of-step velocity and spin, solved with its interfaces' impulses
+    (the module's docstring). Newton iterations on values only, then one differentiable
+    Newton step at the solution: its derivative is -(dR/dq)^-1 dR/dparams, the implicit
+    function theorem's."""
+    blocks = structure.blocks_of("rigid")
+    if not blocks:
+        return motions
+    frames = {block.name: motions[block.name] for block in blocks}
+    start = jnp.concatenate([jnp.concatenate([frames[b.name].velocity, frames[b.name].spin[None]]) for b in blocks])
+    if not rigid_interfaces(structure):
+        solved = start
+    else:
+        def residual(motion, grid, frictions, frames):
+            return rigid_residual(motion, grid, frictions, structure, frames, positions)
+
+        fixed = jax.lax.stop_gradient((grid, frictions, frames))
+
+        def newton(_, motion):
+            jacobian = jax.jacfwd(residual)(motion, *fixed)
+            return motion - jnp.linalg.solve(jacobian, residual(motion, *fixed))
+
+        converged = jax.lax.stop_gradient(jax.lax.fori_loop(0, NEWTON_ITERATIONS, newton, jax.lax.stop_gradient(start)))
+        jacobian = jax.lax.stop_gradient(jax.jacfwd(residual)(converged, *fixed))
+        solved = converged - jnp.linalg.solve(jacobian, residual(converged, grid, frictions, frames))
+    motions = dict(motions)
+    for index, block in enumerate(blocks):
+        motions[block.name] = frames[block.name]._replace(velocity=solved[3 * index:3 * index + 2], spin=solved[3 * index + 2])
+    return motions
+
+
+def received_impulses(structure, impulses):
+    """{field: (nx, ny, 2) total impulse the field received from all interfaces}."""
+    received = {}
+    for interface, impulse in zip(structure.interfaces, impulses):
+        received[interface.first] = received.get(interface.first, 0.0) + impulse
+        received[interface.second] = received.get(interface.second, 0.0) - impulse
+    return received
+
+
+def move_kinematic_bodies(state, start, structure, motions, impulses):
+    """Prescribed points move at their velocity from their positions `start` (N, 2) at the
+    start of the step; rigid bodies move as one body with their solved velocity and spin
+    (the points turn by dt omega about the centre of mass, which moves by dt V).
+
+    Returns (state, reactions {prescribed body: (2,) force that kept it on its path})."""
+    particles, dt = state.particles, structure.dt
+    x, v, rigid = particles.x, particles.v, dict(state.rigid)
+    received = received_impulses(structure, impulses)
+    gravity = jnp.asarray(structure.gravity, x.dtype)
+    reactions = {}
+    for block in structure.blocks_of("prescribed"):
+        before, after = motions[block.name]
+        mass = jnp.sum(particles.mass[block.points])
+        impulse = received.get(block.field)
+        total = 0.0 if impulse is None else jnp.sum(impulse, axis=(0, 1))
+        reactions[block.name] = mass * (after - before) / dt - mass * gravity - total / dt
+        count = block.stop - block.start
+        x = x.at[block.points].set(start[block.points] + dt * after)
+        v = v.at[block.points].set(jnp.broadcast_to(after, (count, 2)))
+    for block in structure.blocks_of("rigid"):
+        body, motion = motions[block.name], state.rigid[block.name]
+        turn = dt * body.spin
+        cos, sin = jnp.cos(turn), jnp.sin(turn)
+        arm = start[block.points] - body.centre
+        turned = jnp.stack([cos * arm[:, 0] - sin * arm[:, 1], sin * arm[:, 0] + cos * arm[:, 1]], axis=-1)
+        x = x.at[block.points].set(body.centre + dt * body.velocity + turned)
+        v = v.at[block.points].set(body.velocity + spin_velocity(body.spin, turned))
+        rigid[block.name] = motion.replace(
+            translation=motion.translation + dt * body.velocity, rotation=motion.rotation + turn,
+            velocity=body.velocity, spin=body.spin,
+        )
+    return state.replace(particles=particles.replace(x=x, v=v), rigid=rigid), reactions
