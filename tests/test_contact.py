@@ -502,7 +502,7 @@ def test_scenes_with_several_fields_compile_with_fewer_copies_and_the_same_numbe
 def test_unpaired_bodies_are_bonded_to_paired_ones():
     # A foundation that is in no pair shares field 0; the backfill and the wall get their own.
     # The foundation is bonded (no slip) to both, the pair is in frictional contact, in the
-    # pair's own order (its impulse acts on the backfill).
+    # pair's own order (its impulse acts on the backfill). The prescribed wall's own normal is used.
     scene = small_active_wall()
     foundation = Body("foundation", "sand", Rectangle((0.0, 0.0), (2.0, 0.1)))
     backfill = dataclasses.replace(scene.bodies[0], region=Rectangle((0.3, 0.1), (2.0, 0.5)))
@@ -510,9 +510,9 @@ def test_unpaired_bodies_are_bonded_to_paired_ones():
     field, count, interfaces = velocity_fields(dataclasses.replace(scene, bodies=(foundation, wall, backfill)))
     assert field == {"foundation": 0, "wall": 1, "backfill": 2} and count == 3
     assert interfaces == (
-        Interface(0, 1, None, kinematic_second=True),
+        Interface(0, 1, None, kinematic_second=True, normal_from=1),
         Interface(0, 2, None),
-        Interface(2, 1, "backfill/wall", kinematic_second=True),
+        Interface(2, 1, "backfill/wall", kinematic_second=True, normal_from=1),
     )
 
 

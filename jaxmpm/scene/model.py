@@ -64,8 +64,10 @@ PRESETS = {
 }
 DEFAULT_PRESET = "balanced"
 # With APIC, the points' own velocity fades over this many cell crossings of the slowest free
-# body's p-wave (solver.transfer_memory; docs/convergence.md measures the choice).
-DEFAULT_RELAXATION = 10.0
+# body's p-wave (solver.transfer_memory); 0 is plain APIC. docs/convergence.md measures 10 on the
+# examples, and says why it is not yet the default (undamped elastic bodies keep vibrating, and
+# creep on slopes; a point that leaves a granular flow glides on a no-slip base).
+DEFAULT_RELAXATION = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,9 +107,11 @@ class Numerics:
         object.__setattr__(self, "filled", filled)
 
     def given(self) -> dict:
-        """The choices this Numerics states itself: its preset, damping and every override."""
+        """The choices this Numerics states itself: its preset, damping, a relaxation other than
+        the default, and every override."""
         return {field.name: getattr(self, field.name) for field in dataclasses.fields(self)
-                if field.name != "filled" and field.name not in self.filled}
+                if field.name != "filled" and field.name not in self.filled
+                and not (field.name == "relaxation" and self.relaxation == DEFAULT_RELAXATION)}
 
 
 @dataclasses.dataclass(frozen=True)
