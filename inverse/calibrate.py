@@ -47,6 +47,7 @@ from inverse.experiments import (
     members_over_devices, problem_arguments, problem_residuals,
 )
 from inverse.fit import ExperimentFit, Fit, gauss_newton
+from inverse.numerical_error import REFINEMENTS, numerical_shifts, residuals_at
 from inverse.parameters import ParameterSpace
 from jaxmpm.ensembles import batch_mesh, is_spread, spread_over_devices
 from jaxmpm.errors import SceneError, SimulationError
@@ -320,6 +321,7 @@ def calibrate(
     resume: bool = False,
     progress: bool = True,
     callback=None,
+    numerical_check=(),
 ) -> Fit:
     """Fit `fit` = {"material.parameter": (low, high) | {"low", "high", "start"}} to the
     observations of one experiment (`sim`, `observations`) or of several (`sim` a list of
@@ -330,14 +332,29 @@ def calibrate(
     Observations may be an `Observations`, a dict {probe: (times, values[, components])}, a
     jaxmpm Result, or the path of a CSV or HDF5 file. optimizer: "lm" (default), "lbfgs" or
     "adam" (see the module docstring). callback(iteration, progress) is called after every
-    iteration (e.g. to log or to stop).
+    iteration (e.g. to log or to stop). numerical_check: refinements among "dt" (time step
+    halved) and "cell" (cell halved): for each, the fit reports how far its values would move
+    at those numerics (`Fit.numerical_shifts`, inverse/numerical_error.py), one forward run
+    of every experiment each.
     """
     if fit is None:
         raise SceneError("fit is missing: name the parameters to fit, e.g. fit={'sand.friction_angle': (20, 45)}.")
     # optax's L-BFGS mixes int32 and int64 internally, which strict promotion would refuse.
     with jax.numpy_dtype_promotion("standard"):
-        return _calibrate(experiments_from(sim, observations), fit, optimizer, starts, max_iterations, gtol, ftol,
-                          learning_rate, seed, checkpoint, checkpoint_every, resume, progress, callback)
+        fitted = _calibrate(experiments_from(sim, observations), fit, optimizer, starts, max_iterations, gtol, ftol,
+                            learning_rate, seed, checkpoint, checkpoint_every, resume, progress, callback,
+                            _checked_refinements(numerical_check))
+    return fitted
+
+
+def _checked_refinements(numerical_check):
+    """The refinements of `numerical_check` as a tuple, or SceneError naming the bad one."""
+    refinements = (numerical_check,) if isinstance(numerical_check, str) else tuple(numerical_check or ())
+    for refinement in refinements:
+        if refinement not in REFINEMENTS:
+            raise SceneError(f"numerical_check = {numerical_check!r}: {refinement!r} is not one of "
+                             f"{', '.join(map(repr, REFINEMENTS))}.")
+    return refinements
 
 
 def _check_options(optimizer, max_iterations, checkpoint_every, gtol, ftol):
@@ -352,7 +369,7 @@ def _check_options(optimizer, max_iterations, checkpoint_every, gtol, ftol):
 
 
 def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, learning_rate,
-               seed, checkpoint, checkpoint_every, resume, progress, callback):
+               seed, checkpoint, checkpoint_every, resume, progress, callback, refinements=()):
     from jaxmpm.progress import progress_bar
 
     _check_options(optimizer, max_iterations, checkpoint_every, gtol, ftol)
@@ -463,8 +480,14 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
     for s in range(count):
         if not run.reason[s]:
             run.reason[s] = f"max_iterations = {max_iterations} reached"
-    return _finish(experiments, groups, space, problem, data, bases, run, state, start_values, optimizer, started,
-                   warning)
+    fitted = _finish(experiments, groups, space, problem, data, bases, run, state, start_values, optimizer, started,
+                     warning)
+    if refinements:
+        with collector_paused():
+            values = jnp.asarray(fitted.values, dtype)
+            fitted.numerical_shifts = numerical_shifts(
+                experiments, space, values, residuals_at(experiments, space, values), fitted.jacobian, refinements)
+    return fitted
 
 
 def _finish(experiments, groups, space, problem, data, bases, run, state, start_values, optimizer, started, warning):

@@ -94,6 +94,9 @@ CALIBRATION_FILE = Section((
         "observations", default=None, section=EXPERIMENT),
     Key("fit", "mapping", "the parameters to fit: \"dotted.name\" = [low, high] or { low, high, start }"),
     Key("optimizer", "table", "the optimiser", default={}, section=OPTIMIZER),
+    Key("numerical_check", "strings", "refinements after the fit: 'dt' (time step halved), 'cell' (cell "
+        "halved); for each, how far the fitted values would move at those numerics, beside the noise "
+        "standard errors (one forward run of every experiment each)", default=[], choices=("dt", "cell")),
 ))
 
 
@@ -187,4 +190,5 @@ def load_calibration(path) -> CalibrationConfig:
         experiments = [_experiment(values, "", path.parent)]
     if not values["fit"]:
         raise SceneError("fit must be a table naming at least one parameter, e.g. \"sand.friction_angle\" = [20, 45].")
-    return CalibrationConfig(experiments, values["fit"], values["optimizer"])
+    options = dict(values["optimizer"], numerical_check=tuple(values["numerical_check"]))
+    return CalibrationConfig(experiments, values["fit"], options)

@@ -91,6 +91,7 @@ class Fit:
     experiments: list               # [ExperimentFit]
     scene_toml: str
     warning: str = ""
+    numerical_shifts: dict = dataclasses.field(default_factory=dict)   # {"dt" | "cell": (P,)}
 
     @property
     def observations(self):
@@ -174,10 +175,28 @@ class Fit:
         verdicts = self.identifiability()
         for name in self.names:
             lines.append(f"  {name} = {self.params[name]:.6g} +- {self.stderr[name]:.3g}   {verdicts[name]}")
+        lines.extend(self.numerical_error_lines())
         lines.append(f"  stopped: {self.reasons[self.best_start]}")
         if self.warning:
             lines.append(f"  warning: {self.warning}")
         return "\n".join(lines)
+
+    def numerical_error_lines(self) -> list[str]:
+        """One line per refinement checked (`calibrate(numerical_check=...)`): how far each
+        value would move at the refined numerics, in standard errors, and which dominates."""
+        labels = {"dt": "time step halved", "cell": "cell halved"}
+        lines = []
+        for refinement, shift in self.numerical_shifts.items():
+            errors = [self.stderr[n] for n in self.names]
+            ratios = [abs(s) / e if 0.0 < e < np.inf else np.nan for s, e in zip(shift, errors)]
+            moves = ", ".join(f"{n} {s:+.3g} ({f'{r:.2g} se' if np.isfinite(r) else 'no standard error'})"
+                              for n, s, r in zip(self.names, shift, ratios))
+            finite = [r for r in ratios if np.isfinite(r)]
+            verdict = ("no parameter has a finite standard error to compare with" if not finite
+                       else "the discretisation dominates the noise" if max(finite) >= 1.0
+                       else "the noise dominates")
+            lines.append(f"  numerical error ({labels[refinement]}): {moves}; {verdict}")
+        return lines
 
     def plot(self, path=None):
         """Data vs fit for every observed component of every experiment, and the loss
@@ -214,7 +233,8 @@ class Fit:
         time, scene of the first experiment); /params, /stderr (one dataset per parameter),
         /correlation, /covariance, /names, /history/{loss, values, gradient_norm, seconds,
         memory_mb, simulations}, /starts/{initial, final, loss}; /time and /probes/NAME of the
-        first experiment, and /experiments/NAME/{time, probes/PROBE} of each."""
+        first experiment, and /experiments/NAME/{time, probes/PROBE} of each; with a numerical
+        check, /numerical_shift/REFINEMENT/PARAMETER."""
         import h5py
 
         path = Path(path)
@@ -238,6 +258,9 @@ class Fit:
             file.create_dataset("time", data=self.time)
             for name, values in self.probes.items():
                 file.create_dataset(f"probes/{name}", data=values)
+            for refinement, shift in self.numerical_shifts.items():
+                for name, value in zip(self.names, shift):
+                    file.create_dataset(f"numerical_shift/{refinement}/{name}", data=value)
             for run in self.experiments:
                 file.create_dataset(f"experiments/{run.name}/time", data=run.time)
                 for name, values in run.probes.items():

@@ -8,6 +8,7 @@ below a cell, so the misfit is smooth in the parameters.
 """
 
 import functools
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -20,6 +21,8 @@ from inverse.experiments import observation_data, residual_function
 from inverse.fit import gauss_newton
 from inverse.parameters import ParameterSpace
 from jaxmpm import SceneError
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 TWIN = """
 [scene]
@@ -305,7 +308,7 @@ def test_calibrate_command(tmp_path, capsys):
     twin_observations(noise=1e-5).to_csv(tmp_path / "obs.csv")
     config = tmp_path / "calibration.toml"
     config.write_text(
-        'scene = "scene.toml"\nobservations = "obs.csv"\n'
+        'scene = "scene.toml"\nobservations = "obs.csv"\nnumerical_check = ["dt"]\n'
         '[fit]\n"sand.friction_angle" = [15.0, 40.0]\n'
         "[noise]\nfooting = 1e-5\nsurface = 1e-5\n"
         "[optimizer]\nmax_iterations = 8\n"
@@ -314,6 +317,7 @@ def test_calibrate_command(tmp_path, capsys):
     assert main(["calibrate", str(config), "-o", str(output), "--quiet", "--keep-checkpoint"]) == 0
     printed = capsys.readouterr().out
     assert "sand.friction_angle" in printed
+    assert "numerical error (time step halved): sand.friction_angle" in printed
     assert f"kept the checkpoint {output}.checkpoint.npz" in printed     # asked to keep it (removed by default:
     assert (tmp_path / "fit.h5.checkpoint.npz").exists()                  # tests/test_calibration_experiments.py)
     import h5py
@@ -321,6 +325,7 @@ def test_calibrate_command(tmp_path, capsys):
     with h5py.File(output) as file:
         assert abs(file["params/sand.friction_angle"][()] - 25.0) < 0.5
         assert file["correlation"].shape == (1, 1)
+        assert np.isfinite(file["numerical_shift/dt/sand.friction_angle"][()])
     config.write_text(config.read_text().replace("max_iterations", "max_iteration"))
     assert main(["calibrate", str(config), "-o", str(output), "--quiet"]) == 2
     assert "optimizer.max_iteration" in capsys.readouterr().err
@@ -380,3 +385,25 @@ def test_bounds_that_would_make_the_time_step_unstable_are_refused():
         inverse.calibrate(sim, twin_observations(), {"sand.young": (1.0e5, 1.0e9)}, progress=False)
     with pytest.raises(SceneError, match=r"fit.sand.young needs a high bound"):
         inverse.calibrate(sim, twin_observations(), {"sand.young": (1.0e5, None)}, progress=False)
+
+
+def test_the_numerical_check_predicts_the_bias_of_a_coarse_fit():
+    # A twin made at half the time step, noise-free, fitted at the default step: the fitted
+    # modulus is biased by the discretisation alone, and the check's predicted shift (the
+    # Gauss-Newton step of the refined problem, inverse/numerical_error.py) must be minus that
+    # bias. The bar (examples/vibrating_bar.toml, plain APIC, whose dissipation depends on dt).
+    scene = (jaxmpm.load_scene(EXAMPLES / "vibrating_bar.toml").with_value("numerics.transfer", "apic")
+             .with_value("scene.duration", 10.0))
+    coarse = jaxmpm.Simulation(scene)
+    fine = jaxmpm.Simulation(scene.with_value("scene.cfl", scene.cfl / 2.0))
+    every = int(round(0.25 / fine.dt))
+    measured = inverse.Observations.from_arrays(
+        {"tip": (fine.time[::every], np.asarray(fine.probes()["tip"])[::every][:, [0]], [0])})
+    fit = inverse.calibrate(coarse, measured, {"rod.young": (50.0, 200.0)}, starts=[{"rod.young": 90.0}],
+                            progress=False, numerical_check="dt")
+    bias = fit.params["rod.young"] - 100.0
+    assert abs(bias) > 1e-3                          # the coarse step does bias the fit ...
+    assert fit.numerical_shifts["dt"][0] == pytest.approx(-bias, rel=0.05)     # ... and the check sees it
+    assert "numerical error (time step halved): rod.young" in fit.summary()
+    with pytest.raises(SceneError, match=r"numerical_check = 'dx': 'dx' is not one of 'dt', 'cell'"):
+        inverse.calibrate(coarse, measured, {"rod.young": (50.0, 200.0)}, progress=False, numerical_check="dx")

@@ -1,0 +1,68 @@
+"""The numerical error of a calibration, measured on the wall twin: docs/calibration.md's table.
+
+    python benchmarks/calibration_numerical_error.py [--relaxation 0 10]
+
+The twin's observations (wall-top displacement, thrust; examples/calibrate_wall_scene.toml)
+are made at fine numerics, the time step halved (cfl 0.2), noise-free, at the true values
+(phi = 30 deg, gamma = 5 1/s, N = 2). The fit runs at the default numerics (cfl 0.4) from the
+calibration study's start, with `numerical_check=("dt",)`. The fitted values' bias (fit -
+truth) is then the numerical error a user inherits, and the check's predicted shift (what the
+values would do at the refined numerics) should be minus that bias. A second fit to the same
+observations with 2 % noise gives the noise standard errors to compare with. A study, not a
+test: about 10 minutes per relaxation on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+import inverse  # noqa: E402
+import jaxmpm  # noqa: E402
+from calibration_study import WALL_FIT, WALL_SCENE, WALL_START, WALL_TRUTH, wall_observations  # noqa: E402
+
+
+def study(relaxation):
+    scene = jaxmpm.load_scene(WALL_SCENE).with_value("numerics.relaxation", relaxation)
+    coarse = jaxmpm.Simulation(scene)
+    fine = jaxmpm.Simulation(scene.with_value("scene.cfl", scene.cfl / 2.0))
+    print(f"\n### relaxation = {relaxation:g}: {coarse.point_count} points, {coarse.steps} steps at cfl "
+          f"{scene.cfl:g} (observations from {fine.steps} at cfl {scene.cfl / 2:g})\n")
+    print("| parameter | truth | fit at cfl 0.4 | bias | predicted shift at half dt | "
+          "bias / noise standard error (2 %) |")
+    print("|---|---|---|---|---|---|")
+    started = time.perf_counter()
+    fit = inverse.calibrate(coarse, wall_observations(fine, 0.0), WALL_FIT, starts=[WALL_START],
+                            progress=False, numerical_check=("dt",))
+    noisy = inverse.calibrate(coarse, wall_observations(fine, 0.02), WALL_FIT, starts=[WALL_START], progress=False)
+    shift = fit.numerical_shifts["dt"]
+    for index, name in enumerate(fit.names):
+        bias = fit.params[name] - WALL_TRUTH[name]
+        print(f"| {name} | {WALL_TRUTH[name]:g} | {fit.params[name]:.4g} | {bias:+.3g} | {shift[index]:+.3g} | "
+              f"{abs(bias) / noisy.stderr[name]:.2g} |")
+    print(f"\n{fit.summary()}\n({time.perf_counter() - started:.0f} s for both fits)")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--relaxation", type=float, nargs="+", default=[0.0, 10.0])
+    arguments = parser.parse_args()
+    print(f"jaxmpm calibration numerical error, {time.strftime('%Y-%m-%d')}, {jax.devices()[0].device_kind}")
+    for relaxation in arguments.relaxation:
+        study(relaxation)
+        sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()
