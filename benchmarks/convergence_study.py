@@ -166,15 +166,17 @@ def example_quantities(name, t, probes):
             "centre of mass x [mm]": 1e3 * at_times(t, probes["mass_centre"][:, 0], times)}
 
 
-def examples_study():
+def examples_study(names=("retaining_wall", "pile_driving", "column_collapse"), relaxations=(0.0, None)):
+    """Each example at cfl 0.4 and 0.2, with each of `relaxations` (None: as shipped)."""
     import jaxmpm
 
     print("\n### Examples at the shipped cfl and at half (the largest change over the output times)\n")
     print("| example | quantity | relaxation | at cfl 0.4 (last time) | at cfl 0.2 | change | runs [s] |")
     print("|---|---|---|---|---|---|---|")
     durations = {"retaining_wall": 0.4, "pile_driving": 0.2, "column_collapse": 1.0}
-    for name, duration in durations.items():
-        for relaxation in (0.0, None):
+    for name in names:
+        duration = durations[name]
+        for relaxation in relaxations:
             found = {}
             seconds = 0.0
             for cfl in (0.4, 0.2):
@@ -191,7 +193,9 @@ def examples_study():
                 found[cfl] = example_quantities(name, t, probes)
             if len(found) < 2:
                 continue
-            label = "0 (plain APIC)" if relaxation is not None else f"{jaxmpm.Numerics().relaxation:g} (default)"
+            shipped = jaxmpm.load_scene(ROOT / "examples" / f"{name}.toml").numerics.relaxation
+            value = shipped if relaxation is None else relaxation
+            label = f"{value:g}" + (" (shipped)" if value == shipped else "") + (" (plain APIC)" if value == 0 else "")
             for quantity, coarse in found[0.4].items():
                 fine = found[0.2][quantity]
                 print(f"| {name} | {quantity} | {label} | {coarse[-1]:.4g} | {fine[-1]:.4g} | "
@@ -231,6 +235,9 @@ STUDIES = {"wall": wall_study, "stiff": stiff_study, "examples": examples_study,
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--study", choices=tuple(STUDIES), action="append", help="run only these (repeatable)")
+    parser.add_argument("--examples", nargs="+", default=None, help="examples study: only these examples")
+    parser.add_argument("--relaxation", type=float, nargs="+", default=None,
+                        help="examples study: these numerics.relaxation values (default: 0 and as shipped)")
     arguments = parser.parse_args()
     import jax
 
@@ -238,6 +245,10 @@ def main():
     print(f"jaxmpm convergence study, {time.strftime('%Y-%m-%d')}, {jax.devices()[0].device_kind}, "
           f"{__import__('os').cpu_count()} cores")
     for name in arguments.study or STUDIES:
+        if name == "examples":
+            examples_study(tuple(arguments.examples or ("retaining_wall", "pile_driving", "column_collapse")),
+                           tuple(arguments.relaxation or (0.0, None)))
+            continue
         STUDIES[name]()
         sys.stdout.flush()
 

@@ -30,6 +30,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxmpm.contact import interface_impulse, interface_normals
 
@@ -242,3 +243,90 @@ def move_kinematic_bodies(state, start, structure, motions, impulses):
             velocity=body.velocity, spin=body.spin,
         )
     return state.replace(particles=particles.replace(x=x, v=v), rigid=rigid), reactions
+
+
+def convex_outline(vertices):
+    """The vertices (K, 2) of a convex polygon in counter-clockwise order, as a tuple of pairs,
+    or None if the polygon is not convex (its points are then not kept outside)."""
+    corners = np.asarray(vertices, float)
+    edges = np.roll(corners, -1, axis=0) - corners
+    turns = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+    if np.all(turns <= 0.0):
+        corners, turns = corners[::-1], -turns
+    if not np.all(turns >= 0.0) or not np.any(turns > 0.0):
+        return None
+    return tuple(map(tuple, corners.tolist()))
+
+
+def outline_now(block, state, dtype):
+    """(K, 2) corners of a prescribed or rigid body's outline at the state's time: its scene
+    region moved as its points moved (prescribed: the shift of their mean; rigid: its
+    translation and rotation about its centre of mass)."""
+    corners = jnp.asarray(block.outline, dtype)
+    centre = jnp.asarray(block.outline_centre, dtype)
+    if block.kinematics == "prescribed":
+        return corners + (jnp.mean(state.particles.x[block.points], axis=0) - centre)
+    motion = state.rigid[block.name]
+    cos, sin = jnp.cos(motion.rotation), jnp.sin(motion.rotation)
+    arm = corners - centre
+    turned = jnp.stack([cos * arm[:, 0] - sin * arm[:, 1], sin * arm[:, 0] + cos * arm[:, 1]], axis=-1)
+    return centre + motion.translation + turned
+
+
+def outline_pairs(structure):
+    """(free block, kinematic block) of every contact pair between a free body and a prescribed
+    or rigid body with a convex outline."""
+    by_field = {}
+    for block in structure.bodies:
+        by_field.setdefault(block.field, []).append(block)
+    pairs = []
+    for interface in structure.interfaces:
+        if interface.contact is None or interface.kinematic_first == interface.kinematic_second:
+            continue
+        body_field, free_field = ((interface.first, interface.second) if interface.kinematic_first
+                                  else (interface.second, interface.first))
+        for body in by_field[body_field]:
+            if body.outline is None:
+                continue
+            pairs.extend((free, body) for free in by_field[free_field] if free.kinematics == "free")
+    return tuple(pairs)
+
+
+def keep_points_outside(state, structure, motions):
+    """Points of free bodies that ended the step inside a prescribed or rigid body they are in
+    contact with are put back on its surface, and their velocity towards it is removed.
+
+    Grid contact acts on nodes, while points move with velocities interpolated from nodes on
+    both sides of the interface: a point under a pile tip, between a contact node moving with
+    the pile and a slower node below, closes on the tip at N_lower (v_pile - v_lower) and
+    enters it, where the body's normal is undefined and nothing pushes it out (16 points
+    ended inside the pile tip of examples/pile_driving.toml). The body's outline is known
+    exactly (its scene region, moved with it), so the point is moved to the nearest edge of
+    the convex outline, x <- x - d n (d = max_e n_e . (x - a_e) < 0, the edge it is nearest),
+    and v <- v - min(0, (v - v_b) . n) n with v_b the body's velocity there."""
+    particles = state.particles
+    x, v = particles.x, particles.v
+    for free, body in outline_pairs(structure):
+        corners = outline_now(body, state, x.dtype)
+        edges = jnp.roll(corners, -1, axis=0) - corners
+        lengths = jnp.sqrt(edges[:, 0] ** 2 + edges[:, 1] ** 2)
+        normals = jnp.stack([edges[:, 1], -edges[:, 0]], axis=-1) / lengths[:, None]   # outward (counter-clockwise)
+        points = x[free.points]
+        distances = (points[:, None, 0] - corners[None, :, 0]) * normals[None, :, 0] + \
+            (points[:, None, 1] - corners[None, :, 1]) * normals[None, :, 1]
+        nearest = jnp.argmax(distances, axis=1)
+        depth = jnp.max(distances, axis=1)
+        inside = depth < 0.0
+        normal = normals[nearest]
+        moved = jnp.where(inside[:, None], points - depth[:, None] * normal, points)
+        motion = motions[body.name]
+        if body.kinematics == "prescribed":
+            surface_velocity = jnp.broadcast_to(motion.after, points.shape)
+        else:
+            surface_velocity = motion.velocity + spin_velocity(motion.spin, moved - motion.centre - structure.dt * motion.velocity)
+        velocity = v[free.points]
+        approach = jnp.sum((velocity - surface_velocity) * normal, axis=1)
+        velocity = jnp.where((inside & (approach < 0.0))[:, None], velocity - approach[:, None] * normal, velocity)
+        x = x.at[free.points].set(moved)
+        v = v.at[free.points].set(velocity)
+    return state.replace(particles=particles.replace(x=x, v=v))

@@ -21,6 +21,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxmpm import state as state_bits
+from jaxmpm.bodies import convex_outline
 from jaxmpm.budget import check_memory
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.grid import GridLayout
@@ -145,7 +146,7 @@ class Simulation:
         field, fields, interfaces = velocity_fields(scene)
         blocks = tuple(
             BodyBlock(body.name, body.material, scene.material_of(body).law, start, stop, field[body.name],
-                      body.kinematics.type, body.kinematics.time)
+                      body.kinematics.type, body.kinematics.time, *self.outline_of(body, start, stop))
             for body, (start, stop) in zip(scene.bodies, self.seeds.slices)
         )
         self.structure = Structure(
@@ -170,6 +171,20 @@ class Simulation:
         self._probes = jax.jit(self._probes_from_state)    # also nested in callers' jits: XLA's defaults
         self.compiled_cache = {}     # compiled work built on this simulation (e.g. calibrations)
         self._advance = jit_with_options(self._advance_one_output, several_fields=self.several_fields)
+
+    def outline_of(self, body, start, stop):
+        """(outline, outline_centre) of a prescribed or rigid body whose region is convex (see
+        `solver.BodyBlock`); (None, None) otherwise. A rigid body's centre is its centre of
+        mass (its density is uniform), which its translation and rotation refer to."""
+        if body.kinematics.type == "free":
+            return None, None
+        outline = convex_outline(body.region.vertices)
+        if outline is None:
+            return None, None
+        positions = self.seeds.positions[start:stop]
+        weights = self.seeds.volumes[start:stop] if body.kinematics.type == "rigid" else np.ones(stop - start)
+        centre = weights @ positions / weights.sum()
+        return outline, (float(centre[0]), float(centre[1]))
 
     @property
     def several_fields(self) -> bool:

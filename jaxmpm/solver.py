@@ -52,7 +52,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
-from jaxmpm.bodies import Grid, free_motions, impose_kinematic_fields, move_kinematic_bodies, node_positions, solve_rigid_motions
+from jaxmpm.bodies import (
+    Grid, free_motions, impose_kinematic_fields, keep_points_outside, move_kinematic_bodies, node_positions, outline_pairs,
+    solve_rigid_motions,
+)
 from jaxmpm.contact import Interface, resolve_interfaces
 from jaxmpm.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
@@ -71,7 +74,9 @@ class BodyBlock:
 
     law: its material's static constitutive law (values come from params["materials"]
     [material_name]); kinematics: "free" | "prescribed" | "rigid"; times: the prescribed
-    velocity table's times [s] (None: a constant velocity)."""
+    velocity table's times [s] (None: a constant velocity); outline: a prescribed or rigid
+    body's region as convex polygon corners, counter-clockwise, at t = 0 (None: not convex, or a
+    free body), and outline_centre the mean of its points then (`bodies.keep_points_outside`)."""
 
     name: str
     material_name: str
@@ -81,6 +86,8 @@ class BodyBlock:
     field: int = 0
     kinematics: str = "free"
     times: tuple[float, ...] | None = None
+    outline: tuple | None = None
+    outline_centre: tuple[float, float] | None = None
 
     @property
     def points(self):
@@ -457,6 +464,8 @@ def make_step(structure: Structure):
             particles, stencil, velocity_old, velocity_new, field, structure.memory, dt, layout
         )
         state, reactions = move_kinematic_bodies(state.replace(particles=particles), start, structure, motions, impulses)
+        if outline_pairs(structure):
+            state = keep_points_outside(state, structure, motions)
         particles = state.particles
         if structure.update == "musl":
             velocity_new = jax.named_call(remap_velocity, name="remap_velocity")(
