@@ -206,3 +206,65 @@ def test_a_rigid_block_slides_down_a_soft_slab_alike_at_half_the_step():
         assert acceleration > 0.8 * G * np.sin(np.radians(30.0))
         moves.append(moved[-1])
     assert abs(moves[0] - moves[1]) / abs(moves[1]) < 0.01
+
+
+def test_gradients_through_the_rigid_body_solve_and_the_outline_match_finite_differences():
+    # Reverse mode through a rigid wall's Newton solve (its derivative is the implicit function
+    # theorem's, bodies.solve_rigid_motions), the transfer memory and the points kept outside
+    # its outline: the wall top's mean displacement over a short release against the sand's
+    # friction angle and the wall friction, central differences with relative step 1e-6.
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmpm import with_values
+
+    sim = Simulation(small_wall(duration=0.02))
+
+    def loss(params):
+        return jnp.mean(sim.probes(params)["top"][:, 0])
+
+    params = sim.cast(sim.params)
+    gradient = jax.jit(jax.grad(loss))(params)
+    assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree_util.tree_leaves(gradient))
+    forward = jax.jit(loss)
+    for name, value, derivative in [
+        ("sand.friction_angle", 30.0, gradient["materials"]["sand"]["friction_angle"]),
+        ("sand/wall.friction", 0.4, gradient["contacts"]["sand/wall"]["friction"]),
+    ]:
+        step = 1e-6 * value
+        above, below = (forward(with_values(params, {name: jnp.asarray(value + sign * step)})) for sign in (1, -1))
+        reference = (float(above) - float(below)) / (2 * step)
+        assert float(derivative) != 0.0
+        assert float(derivative) == pytest.approx(reference, rel=1e-4), name
+
+
+def test_gradients_through_points_kept_out_of_a_punch_match_finite_differences():
+    # The punch of test_no_sand_point_ends_inside_a_punch, with the transfer memory, over the
+    # 0.25 s in which points start to be put back on its outline: d(mean reaction late in the
+    # push)/d(friction angle) against central differences (relative step 1e-6). The contact
+    # friction is left out: a stick/slip switch lies within 3e-6 of mu = 0.3 here, so central
+    # differences of that width straddle a kink (1.3e6 at step 1e-5, 764 at 1e-7).
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmpm import with_values
+
+    scene = punch()
+    scene = dataclasses.replace(scene, numerics=dataclasses.replace(scene.numerics, relaxation=10.0), output_every=0.05)
+    sim = Simulation(scene)
+    late = sim.time > 0.2
+
+    def loss(params):
+        return jnp.mean(sim.probes(params)["push"][late, 1])
+
+    params = sim.cast(sim.params)
+    derivative = jax.jit(jax.grad(loss))(params)["materials"]["sand"]["friction_angle"]
+    forward = jax.jit(loss)
+    step = 1e-6 * 30.0
+    above, below = (forward(with_values(params, {"sand.friction_angle": jnp.asarray(30.0 + sign * step)}))
+                    for sign in (1, -1))
+    reference = (float(above) - float(below)) / (2 * step)
+    assert float(derivative) != 0.0
+    assert float(derivative) == pytest.approx(reference, rel=1e-4)
