@@ -113,7 +113,7 @@ def footing(cfl=0.4, duration=0.2, sand=None, **choices):
     resting on a 0.4 x 0.15 m layer of sand in its geostatic state through a rough contact
     (mu = 0.5), released at t = 0 (16 x 10 cells of 25 mm; examples/calibrate_twin_scene.toml
     with a rigid footing). Bonded (no [[contacts]]), it was unstable with bspline2 before
-    solver.bonded_rigid_motions (docs/stability.md)."""
+    bodies.solve_rigid_motions (docs/stability.md)."""
     import jaxmpm
 
     material = {"model": "drucker_prager", "density": 1800.0, "young": 2.0e6, "poisson": 0.3,

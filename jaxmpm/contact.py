@@ -15,9 +15,8 @@ once per step by an impulse J on a and -J on b, so momentum is kept exactly:
   impulse    J = m_r dv, m_r = m_a m_b / (m_a + m_b) for two free fields; m_r = m_a (or m_b) when
              b (or a) is prescribed or rigid: such a field acts as infinitely heavy, keeps its
              velocity, and the impulse it receives is reported (reaction, rigid-body motion).
-             A rigid body's nodal velocity is set before: predicted from the last step's
-             force for contact pairs, solved together with the bonded nodes' momentum for
-             bonded interfaces (`solver.bonded_rigid_motions`).
+             A rigid body's nodal velocity is set before, solved together with the impulses
+             of all its interfaces (`bodies.solve_rigid_motions`).
 
 Normals. Against a prescribed body, the normal is that body's own (its surface is known to the
 resolution of its points and does not deform). Between two free bodies, and between a free and

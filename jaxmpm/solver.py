@@ -4,12 +4,16 @@
     nodes     = particles_to_grid            each field's mass, momentum, internal + external
                                              force (and mass gradient, with contact pairs)
     velocity  = update_grid_velocity         local damping, M a = F, edge conditions
+    motions   = solve_rigid_motions          (rigid bodies only) each rigid body's velocity and
+                                             spin, solved with its interfaces' impulses (`bodies`)
     velocity  = resolve_interfaces           (several fields only) prescribed and rigid
                                              fields take their motion; contact and bonding
                                              impulses between fields (`contact`)
-    particles = grid_to_particles            FLIP/PIC velocity blend, positions
+    particles = grid_to_particles            velocity (the points' own, fading, and the grid's),
+                                             positions
     state     = move_kinematic_bodies        prescribed points move on their path, rigid
-                                             bodies under gravity and the impulses received
+                                             bodies as one body; free points put back out of
+                                             the bodies they contact (`bodies`)
     velocity  = remap_velocity (MUSL only)   nodal velocity from the updated points
     particles = update_stress                L = grad v, each free body's material, volume
 

@@ -290,7 +290,7 @@ def test_a_rigid_plate_bonded_to_a_lighter_block_drags_it_along():
 
 
 def test_bonded_rigid_plate_gradients_match_finite_differences():
-    # Reverse mode through the bonded rigid-body solve (solver.bonded_rigid_motions): the
+    # Reverse mode through the bonded rigid-body solve (bodies.solve_rigid_motions): the
     # plate's mean displacement over 0.05 s against the block's stiffness and the plate's own
     # density (its mass M in the 3 x 3 system), central differences with relative step 1e-6.
     sim = Simulation(bonded_plate(duration=0.05))
@@ -316,7 +316,7 @@ def test_bonded_rigid_plate_gradients_match_finite_differences():
 def test_a_light_rigid_footing_bonded_to_sand_comes_to_rest():
     # A rigid footing ten times lighter than the sand it is bonded to (no contact pair),
     # off-centre so that it may turn, released on bspline2: before the bonded interface was
-    # solved with the body (solver.bonded_rigid_motions) this left the grid within 14 steps.
+    # solved with the body (bodies.solve_rigid_motions) this left the grid within 14 steps.
     # It settles and stops: velocity and spin decay, sideways motion stays a fraction of the
     # settlement.
     scene = Scene(
