@@ -34,8 +34,8 @@ import numpy as np
 
 from jaxmpm.contact import interface_impulse, interface_normals
 
-NEWTON_ITERATIONS = 4   # 2-3 reach round-off (the same wall motion, bit for bit or within 1e-12)
-                        # on retaining_wall, the wall twin and the small wall of docs/convergence.md
+NEWTON_ITERATIONS = 3   # 2-3 reach round-off (the same wall motion as 8, bit for bit or within
+                        # 1e-12) on retaining_wall, the wall twin and the small wall of docs/convergence.md
 
 
 class PrescribedStep(NamedTuple):
@@ -147,18 +147,18 @@ class Grid(NamedTuple):
     occupied: jax.Array
 
 
-def rigid_residual(motion, grid, frictions, structure, frames, positions):
+def rigid_residual(motion, grid, frictions, structure, frames, positions, normals):
     """Momentum balance of every rigid body, (3 K,): M (V - V*) - sum J and
     J_c (omega - w*) - sum r x J, with `motion` (3 K,) the bodies' (V_x, V_y, omega) in
-    block order and `frames` their RigidStep before the solve."""
+    block order, `frames` their RigidStep before the solve and `normals` the contact normal
+    of each of `rigid_interfaces` (None for a bonded one; they do not depend on the motion)."""
     blocks = structure.blocks_of("rigid")
     velocity = grid.velocity
     for index, block in enumerate(blocks):
         arm = positions - frames[block.name].centre
         velocity = velocity.at[block.field].set(motion[3 * index:3 * index + 2] + spin_velocity(motion[3 * index + 2], arm))
     received = {block.name: jnp.zeros_like(velocity[0]) for block in blocks}
-    for interface, block in rigid_interfaces(structure):
-        normal = interface_normals(interface, grid.mass, grid.mass_gradient) if interface.contact is not None else None
+    for (interface, block), normal in zip(rigid_interfaces(structure), normals):
         impulse = interface_impulse(interface, grid.mass, velocity, normal, frictions.get(interface.contact), grid.occupied)
         received[block.name] = received[block.name] + (impulse if interface.first == block.field else -impulse)
     balances = []
@@ -173,29 +173,30 @@ def rigid_residual(motion, grid, frictions, structure, frames, positions):
 
 def solve_rigid_motions(structure, motions, grid, frictions, positions):
     """Each rigid body's end-of-step velocity and spin, solved with its interfaces' impulses
-    (the module's docstring). Newton iterations on values only, then one differentiable
-    Newton step at the solution: its derivative is -(dR/dq)^-1 dR/dparams, the implicit
-    function theorem's."""
+    (the module's docstring): NEWTON_ITERATIONS Newton steps from the free motion, all but
+    the last on values only; the last one differentiable with its Jacobian held, so that its
+    derivative is -(dR/dq)^-1 dR/dparams, the implicit function theorem's."""
     blocks = structure.blocks_of("rigid")
     if not blocks:
         return motions
     frames = {block.name: motions[block.name] for block in blocks}
-    start = jnp.concatenate([jnp.concatenate([frames[b.name].velocity, frames[b.name].spin[None]]) for b in blocks])
-    if not rigid_interfaces(structure):
-        solved = start
-    else:
-        def residual(motion, grid, frictions, frames):
-            return rigid_residual(motion, grid, frictions, structure, frames, positions)
+    solved = jnp.concatenate([jnp.concatenate([frames[b.name].velocity, frames[b.name].spin[None]]) for b in blocks])
+    if rigid_interfaces(structure):
+        normals = tuple(None if interface.contact is None else interface_normals(interface, grid.mass, grid.mass_gradient)
+                        for interface, _ in rigid_interfaces(structure))
 
-        fixed = jax.lax.stop_gradient((grid, frictions, frames))
+        def residual(motion, grid, frictions, frames, normals):
+            return rigid_residual(motion, grid, frictions, structure, frames, positions, normals)
+
+        inputs = (grid, frictions, frames, normals)
+        fixed = jax.lax.stop_gradient(inputs)
 
         def newton(_, motion):
-            jacobian = jax.jacfwd(residual)(motion, *fixed)
-            return motion - jnp.linalg.solve(jacobian, residual(motion, *fixed))
+            return motion - jnp.linalg.solve(jax.jacfwd(residual)(motion, *fixed), residual(motion, *fixed))
 
-        converged = jax.lax.stop_gradient(jax.lax.fori_loop(0, NEWTON_ITERATIONS, newton, jax.lax.stop_gradient(start)))
-        jacobian = jax.lax.stop_gradient(jax.jacfwd(residual)(converged, *fixed))
-        solved = converged - jnp.linalg.solve(jacobian, residual(converged, grid, frictions, frames))
+        solved = jax.lax.stop_gradient(jax.lax.fori_loop(0, NEWTON_ITERATIONS - 1, newton, jax.lax.stop_gradient(solved)))
+        jacobian = jax.lax.stop_gradient(jax.jacfwd(residual)(solved, *fixed))
+        solved = solved - jnp.linalg.solve(jacobian, residual(solved, *inputs))
     motions = dict(motions)
     for index, block in enumerate(blocks):
         motions[block.name] = frames[block.name]._replace(velocity=solved[3 * index:3 * index + 2], spin=solved[3 * index + 2])
