@@ -26,7 +26,6 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-import numpy as np  # noqa: E402
 
 import inverse  # noqa: E402
 import jaxmpm  # noqa: E402

@@ -24,7 +24,6 @@ A study, not a test: it prints markdown tables.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import sys
 import time
