@@ -249,9 +249,12 @@ def move_kinematic_bodies(state, start, structure, motions, impulses):
 
 def convex_outline(vertices):
     """The vertices (K, 2) of a convex polygon in counter-clockwise order, as a tuple of pairs,
-    or None if the polygon is not convex (its points are then not kept outside)."""
+    or None if the polygon is not convex or repeats a vertex (a zero-length edge has no
+    normal; its points are then not kept outside)."""
     corners = np.asarray(vertices, float)
     edges = np.roll(corners, -1, axis=0) - corners
+    if np.any(np.hypot(edges[:, 0], edges[:, 1]) == 0.0):
+        return None
     turns = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
     if np.all(turns <= 0.0):
         corners, turns = corners[::-1], -turns
