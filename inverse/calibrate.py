@@ -115,10 +115,14 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
     if key in cache:
         return cache[key]
     residuals = problem_residuals(groups)
+    forward_residuals = problem_residuals(groups, forward_only=True)     # for forward mode only
     count = sum(e.observations.count for e in experiments)
 
     def residuals_of_z(z, data, bases):
         return residuals(space.to_physical(z), data, bases)
+
+    def forward_residuals_of_z(z, data, bases):
+        return forward_residuals(space.to_physical(z), data, bases)
 
     def loss_of_z(z, data, bases):
         r = residuals_of_z(z, data, bases)
@@ -128,10 +132,10 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
     several_fields = any(e.sim.several_fields for e in experiments)
     jit = functools.partial(jit_with_options, several_fields=several_fields)
     if optimizer_name == "lm":
-        iterate = jit(batched(levenberg_marquardt_iteration(residuals_of_z, count)))   # forward mode only
+        iterate = jit(batched(levenberg_marquardt_iteration(forward_residuals_of_z, count)))
 
         def unevaluated(z, data, bases):
-            size = jax.eval_shape(residuals_of_z, z[0], data, bases).shape[0]
+            size = jax.eval_shape(forward_residuals_of_z, z[0], data, bases).shape[0]
             return jax.vmap(lambda point: levenberg_marquardt.unevaluated(point, size))(z)
 
         def start(z, data, bases):
@@ -149,7 +153,7 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
     problem = CompiledProblem(
         residuals=residuals,
         linearization=jit(lambda values, data, bases: levenberg_marquardt.residuals_and_jacobian(
-            functools.partial(residuals, data=data, bases=bases), values)),
+            functools.partial(forward_residuals, data=data, bases=bases), values)),
         start=start,
         start_shape=start_shape,
         iterate=iterate,
@@ -162,8 +166,7 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
 def over_starts(function, in_axes):
     """jax.vmap(function, in_axes) over the calibration's starts, but a single start (the
     default) runs unbatched, its outputs given the batch axis after: a batch of one still
-    batches every gather, scatter and loop of the simulation, and the twin example's
-    Levenberg-Marquardt calibration ran 11 % slower that way (docs/benchmarks.md, 2026-12-04)."""
+    batches every gather, scatter and loop of the simulation, which runs slower."""
     mapped = jax.vmap(function, in_axes=in_axes)
 
     def call(*args):

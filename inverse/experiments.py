@@ -20,6 +20,7 @@ Observations may be handed over as an `Observations`, a dict {probe: (times, val
 from __future__ import annotations
 
 import dataclasses
+import functools
 from pathlib import Path
 
 import jax
@@ -187,13 +188,15 @@ def residual_function(sim, observations: Observations, insert):
     """residuals(values, data, base) -> (M,) weighted residuals r_j = (y_sim(t_j) - y_j) / s_j
     of one experiment, the simulated probes (averaged over each channel's window) linearly
     interpolated to the observation times;
-    `insert(values, base)` puts the fitted values (P,) into the parameter pytree `base`."""
+    `insert(values, base)` puts the fitted values (P,) into the parameter pytree `base`.
+    forward_only=True runs `sim.forward_only()`: the same values, faster under forward mode
+    (the Levenberg-Marquardt Jacobians), with no reverse mode."""
     time = jnp.asarray(sim.time, sim.dtype)
     layout = [(name, channel.components, window_steps(channel.window, sim.dt))
               for name, channel in observations.channels.items()]
 
-    def residuals(values, data, base):
-        probes = sim.probes(insert(values, base))
+    def residuals(values, data, base, forward_only=False):
+        probes = (sim.forward_only() if forward_only else sim).probes(insert(values, base))
         parts = []
         for (name, components, width), (times, observed, scale) in zip(layout, data):
             history = window_mean(probes[name], width)
@@ -262,17 +265,18 @@ def experiment_bases(groups, bases, count):
     return unstacked
 
 
-def problem_residuals(groups):
+def problem_residuals(groups, forward_only=False):
     """residuals(values, data, bases) -> (M,): every experiment's residuals, in group order
-    (a group of several members is vmapped)."""
+    (a group of several members is vmapped); forward_only: see `residual_function`."""
 
     def residuals(values, data, bases):
         parts = []
         for group, group_data, group_base in zip(groups, data, bases):
+            of_member = functools.partial(group.residuals, forward_only=forward_only)
             if len(group.members) == 1:
-                parts.append(group.residuals(values, group_data, group_base))
+                parts.append(of_member(values, group_data, group_base))
             else:
-                batched = jax.vmap(group.residuals, in_axes=(None, 0, 0))(values, group_data, group_base)
+                batched = jax.vmap(of_member, in_axes=(None, 0, 0))(values, group_data, group_base)
                 parts.append(batched.ravel())
         return jnp.concatenate(parts)
 

@@ -77,7 +77,8 @@ def ensemble(sim, params_batch, devices=None) -> dict:
     batch = jax.device_put(batch, sharding)
     key = ("ensemble", tuple(device.id for device in mesh.devices.flat), padded)
     if key not in sim.compiled_cache:
-        member = lambda params: sim._probes(params, sim.initial_state(params))[0]  # noqa: E731
+        fast = sim.forward_only()       # never differentiated in reverse mode here
+        member = lambda params: fast._probes(params, fast.initial_state(params))[0]  # noqa: E731
         sim.compiled_cache[key] = jit_with_options(jax.vmap(member), several_fields=sim.several_fields,
                                                    out_shardings=sharding)
     with collector_paused():

@@ -4,8 +4,8 @@ Nodes form an (nx + 1, ny + 1) array, one per velocity field: node arrays are
 (fields, nx + 1, ny + 1, channels), and each point talks to its own body's field only (a scene
 without contact pairs has one field). Particle-to-grid is ONE scatter: each point adds a row
 holding all its s x s nodes' values side by side, keyed by its base node; the rows are then
-summed onto the nodes as s x s shifted slices. This was ~2.5x faster on CPU than s^2 N separate
-scatter rows (measured in benchmarks/).
+summed onto the nodes as s x s shifted slices (on XLA:CPU much faster than s^2 N separate
+scatter rows).
 """
 
 import dataclasses
@@ -13,11 +13,11 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.custom_batching import custom_vmap
 
-from jaxmpm.adjoints import paired_linear
 from jaxmpm.shapes import make_shape, stencil
-from jaxmpm.tensors import materialized, stack_last
+from jaxmpm.kernels.fusion import materialized
+from jaxmpm.kernels.scatter import batched_add_to_nodes
+from jaxmpm.tensors import stack_last
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,9 +59,8 @@ class GridLayout:
         Every grid constant in the step's stencil arithmetic is a Python scalar, never a small
         array: an array the step closes over becomes an operand of the loops around the step
         (lax.scan hoists it, and so does reverse mode), which XLA:CPU does not fold back into
-        a constant inside nested loops (the segments of a checkpointed rollout). The stencil's
-        fused kernels, which recompute each point's base node at every stencil entry, ran 2x
-        slower there, the whole step ~20 % (docs/benchmarks.md, 2026-12-03)."""
+        a constant inside nested loops (the segments of a checkpointed rollout), where the
+        stencil's kernels then ran twice as slow."""
         along_x, along_y = (part[:, 0] for part in jnp.split(positions, 2, axis=1))
         return (along_x - self.origin[0]) / self.cell, (along_y - self.origin[1]) / self.cell
 
@@ -113,43 +112,12 @@ def add_to_nodes(layout, base, values, field=None, fields=1):
     )
 
 
-def add_to_nodes_batched(layout, base, values, field=None, fields=1):
-    """`add_to_nodes`, whose `jax.vmap` stays one scatter with contiguous windows
-    (`batched_scatter`); it has no reverse mode of its own (the paired maps give it one)."""
-    field = jnp.zeros(len(base), jnp.int32) if field is None else field
-    return batched_scatter(layout, fields)(base, values, field)
-
-
-def batched_scatter(layout, fields):
-    """`add_to_nodes` on `layout` with `fields` fields as a function of (base, values, field),
-    batched by hand. JAX's own batching of a scatter puts the batch axis first in the node
-    array, so that each row's window is B pieces far apart: the three tangents of the heap
-    calibration's forward-mode Jacobian scattered 40x slower than their primal
-    (docs/benchmarks.md, 2026-12-04). Here a batch of B is B F fields of one scatter, whose
-    rows are the batch's B N rows."""
-
-    @custom_vmap
-    def scatter(base, values, field):
-        return add_to_nodes(layout, base, values, field, fields)
-
-    @scatter.def_vmap
-    def _(axis_size, in_batched, base, values, field):
-        batched = lambda array, on: array if on else jnp.broadcast_to(array, (axis_size,) + array.shape)   # noqa: E731
-        base, values, field = (batched(array, on) for array, on in zip((base, values, field), in_batched))
-        field = field + fields * jnp.arange(axis_size, dtype=field.dtype)[:, None]   # batch b: fields b F ...
-        rows = lambda array: array.reshape((-1,) + array.shape[2:])   # noqa: E731
-        out = batched_scatter(layout, axis_size * fields)(rows(base), rows(values), rows(field))
-        return out.reshape((axis_size, fields) + out.shape[1:]), True
-
-    return scatter
-
-
 def read_at_stencils(layout, base, nodes, support, field=None):
     """Node values (fields, nx, ny, C) at each point's s x s stencil in its own field: (N, s, s, C).
 
     One windowed gather: each point reads the (s, s, C) block of its field's node array that
     starts at its base node (a base node is at most nx - s, so the block is always inside).
-    On XLA:CPU this ran 4x faster than reading rows of an array of s^2 shifted node copies."""
+    (On XLA:CPU much faster than reading rows of an array of s^2 shifted node copies.)"""
     field = jnp.zeros(len(base), jnp.int32) if field is None else field
     starts = stack_last([field, base[:, 0], base[:, 1], jnp.zeros_like(field)])
     numbers = jax.lax.GatherDimensionNumbers(offset_dims=(1, 2, 3), collapsed_slice_dims=(0,), start_index_map=(0, 1, 2, 3))
@@ -157,51 +125,27 @@ def read_at_stencils(layout, base, nodes, support, field=None):
     return jax.lax.gather(nodes, starts, numbers, window, mode="promise_in_bounds")
 
 
-def scatter_to_nodes(layout, base, values, field=None, fields=1):
-    """`add_to_nodes`, whose reverse mode is `read_at_stencils` (its exact transpose)."""
-    support = values.shape[1]
-
-    def add(indices, values):
-        return add_to_nodes_batched(layout, indices[0], values, indices[1], fields)
-
-    def read(indices, nodes):   # the node cotangents are read at every stencil entry: computed once
-        return read_at_stencils(layout, indices[0], materialized(nodes), support, indices[1])
-
-    return paired_linear(add, read)((base, field), values)
+def scatter_to_nodes(layout, base, values, field=None, fields=1, forward_only=False):
+    """Stencil values (N, s, s, C) added onto the node arrays (fields, nx, ny, C) of each
+    point's own field (`add_to_nodes`). forward_only: with the scatter's own batching rule,
+    which has no reverse mode (`jaxmpm.kernels.scatter`)."""
+    if forward_only:
+        field = jnp.zeros(len(base), jnp.int32) if field is None else field
+        return batched_add_to_nodes(add_to_nodes, layout, base, values, field, fields)
+    return add_to_nodes(layout, base, values, field, fields)
 
 
 def gather_from_nodes(layout, base, nodes, support, field=None):
-    """`read_at_stencils`, whose reverse mode is `add_to_nodes` (its exact transpose). The
-    node values are computed once before the gather (`materialized`): fused into it, their
-    arithmetic (a division per node for velocities) ran again at every stencil entry."""
-    fields = nodes.shape[0]
-    nodes = materialized(nodes)
-
-    def read(indices, nodes):
-        return read_at_stencils(layout, indices[0], nodes, support, indices[1])
-
-    def add(indices, values):
-        return add_to_nodes_batched(layout, indices[0], values, indices[1], fields)
-
-    return paired_linear(read, add)((base, field), nodes)
+    """Node values (fields, nx, ny, C) read at each point's s x s stencil: (N, s, s, C)
+    (`read_at_stencils`)."""
+    return read_at_stencils(layout, base, materialized(nodes), support, field)
 
 
-def add_over_stencil(values):
+def sum_over_stencil(values):
     """Sum (N, s, s, ...) over the s x s stencil nodes, written as s^2 - 1 adds: XLA:CPU runs
     such short reductions (and einsums with a point batch axis) as slow library kernels."""
     support = values.shape[1]
     return sum(values[:, a, b] for a in range(support) for b in range(support))
-
-
-def sum_over_stencil(values):
-    """`add_over_stencil`, whose reverse mode is a broadcast over the stencil (XLA's own
-    transpose pads every one of the s^2 slices back to the whole array)."""
-    shape = values.shape
-
-    def spread(_, totals):
-        return jnp.broadcast_to(totals[:, None, None], shape)
-
-    return paired_linear(lambda _, values: add_over_stencil(values), spread)((), values)
 
 
 EDGES = {"left": (0, 0), "right": (0, -1), "bottom": (1, 0), "top": (1, -1)}   # (axis, side)

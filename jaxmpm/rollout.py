@@ -5,23 +5,18 @@ by `Checkpointing`; see its docstring.
 """
 
 import dataclasses
-import functools
 import math
 import numbers
 
 import jax
 import jax.numpy as jnp
-from jax.custom_derivatives import SymbolicZero
 
 from jaxmpm.budget import physical_bytes
 
 
 def default_budget(physical: float) -> int:
     """What "auto" lets one rollout keep for its backward pass (states and node arrays): 2 GiB,
-    or an eighth of the machine's physical memory where that is less (never under 256 MiB).
-    Keeping a whole rollout's node arrays made gradients 16 % faster at 16k points in float64
-    (against its steps run again whole) and 21 % at 65k in float32 (against segments):
-    docs/benchmarks.md, 2026-12-04, eighth session."""
+    or an eighth of the machine's physical memory where that is less (never under 256 MiB)."""
     return int(min(2 * 1024**3, max(256 * 1024**2, physical / 8)))
 
 
@@ -29,8 +24,8 @@ STORE_BUDGET_BYTES = default_budget(physical_bytes())
 
 # Elementwise arithmetic and layout operations: under step = "recompute_arithmetic" the backward
 # pass recomputes their results (XLA fuses the recomputation into its own kernels) instead of
-# reading them back from memory. Everything else (gathers and scatters, reductions, the stress
-# update's custom derivative, transcendental functions, comparisons) is kept.
+# reading them back from memory. Everything else (gathers and scatters, reductions,
+# transcendental functions, comparisons) is kept.
 RECOMPUTED_PRIMITIVES = frozenset({
     "add", "add_any", "sub", "mul", "neg", "div", "max", "min", "select_n", "convert_element_type",
     "broadcast_in_dim", "reshape", "squeeze", "expand_dims", "concatenate", "slice", "pad", "transpose", "copy",
@@ -43,9 +38,9 @@ KEPT_GRID = "grid"
 # (`solver.velocity_gradient`): recomputed, XLA formed them twice, once per layout its readers
 # asked for, each time from the 9 gathered node velocities of a point.
 KEPT_RATE = "rate"
-# The name of what a material law remembers of its update for its reverse mode (the root of an
-# implicit equation, e.g. the Perzyna solve: `materials.base.points_update`). "recompute" and
-# "recompute_grid" keep these values, so the step they run again solves nothing.
+# The name of the roots of implicit equations a material law solves at each point (the Perzyna
+# solve: `materials.drucker_prager.perzyna_fraction`). "recompute" and "recompute_grid" keep
+# them, so the step they run again solves nothing.
 KEPT_SOLVES = "solve"
 
 
@@ -70,30 +65,22 @@ class Checkpointing:
     during the forward pass itself, so no forward pass runs twice (peak memory is the same).
 
     step: what the backward pass keeps of each step of the segment it differentiates:
-    "auto" (the default: with no segment given, one segment of "recompute_grid" steps when
-    the states and the kept node arrays of the whole rollout fit in the budget, else one
-    segment of "recompute" steps when the states alone fit: the forward pass keeps every
-    step's state and the backward pass runs each step again just before differentiating it,
-    so no forward pass runs twice and no intermediate is written to memory and read back;
-    otherwise segments of "recompute_grid" steps). Both keep what a material law remembers
-    for its reverse mode (KEPT_SOLVES, e.g. each viscoplastic point's Perzyna root, one value a
-    point), so the step run again solves no implicit equation: viscoplastic gradients 11-16 %
-    faster (docs/benchmarks.md, 2026-12-04); the budget counts these values with the states;
-    "recompute_grid" (the step runs again, all but its two particle-to-grid transfers: their
-    node arrays, named KEPT_GRID, are kept. 16,384 points, 200 steps in one segment: gradient
-    19 % faster than "recompute" for 46 % more memory; in segments as fast as
-    "recompute_arithmetic" or up to 10 % faster, for a third of its memory. With 3 x 3
-    stencils (gimp, bspline2) the points' velocity gradients (KEPT_RATE) are kept too:
-    gradients 3-10 % faster for 4 values a point, where with 2 x 2 stencils they ran up to
-    6 % slower; docs/benchmarks.md, 2026-12-04);
-    "recompute_arithmetic" (every intermediate but elementwise arithmetic, which the backward
-    recomputes inside its own kernels: gradients 15-30 % faster than "recompute" from 100 to
-    16k points, for ~460 bytes per point per step of a segment in float32 with 3 x 3 stencils);
-    "recompute" (nothing but the laws' remembered values: the step runs again); "store" (every
-    intermediate: one forward pass fewer, but reading the stored products back cost more than
-    recomputing them, and 2.5x the memory of "recompute_arithmetic"); "names:stencil" (only
-    the shape-function stencil) or "dots" (JAX's dots_with_no_batch_dims_saveable policy).
-    Measured in docs/benchmarks.md and benchmarks/reverse_decomposition.py.
+    - "auto" (default): with no segment given, one segment of "recompute_grid" steps when the
+      states and kept node arrays of the whole rollout fit in the budget, else one segment of
+      "recompute" steps when the states alone fit (no forward pass runs twice); otherwise
+      segments of "recompute_grid" steps;
+    - "recompute_grid": the step runs again, all but its particle-to-grid transfers, whose
+      node arrays (KEPT_GRID) are kept, and with 3 x 3 stencils the points' velocity
+      gradients (KEPT_RATE);
+    - "recompute": the step runs again whole;
+    - "recompute_arithmetic": every intermediate but elementwise arithmetic, which the
+      backward pass recomputes inside its own kernels;
+    - "store": every intermediate (one forward pass fewer, the most memory);
+    - "names:a+b" (only those `checkpoint_name`d values) or "dots" (JAX's
+      dots_with_no_batch_dims_saveable policy).
+    Every choice but "store" keeps the roots of implicit equations a law solves (KEPT_SOLVES,
+    e.g. each viscoplastic point's Perzyna root), so a step run again solves none. Their
+    measured speed and memory: docs/benchmarks.md ("Checkpointing").
 
     budget: the bytes "auto" lets one rollout keep (default STORE_BUDGET_BYTES: 2 GiB, or an
     eighth of the machine's physical memory where that is less; `default_budget`). Rollouts run
@@ -179,47 +166,6 @@ def state_bytes(state):
 def scan_steps(advance, state, length):
     """Run `advance(state) -> (state, output)` `length` times; outputs stacked on axis 0."""
     return jax.lax.scan(lambda carry, _: advance(carry), state, None, length=length)
-
-
-@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
-def tangents_instantiated(values, anchors, where):
-    """`values` (a tuple of arrays) unchanged. Differentiated, each array whose entry of
-    `where` is True has a tangent, zero or not: a zero selected against an entry of the first
-    tangent of `values` or `anchors` (a tuple of arrays) that is not a symbolic zero (JAX
-    linearizes a tangent that depends on no input tangent to a symbolic zero)."""
-    return values
-
-
-def _tangents_instantiated_jvp(where, primals, tangents):
-    (values, _), (value_tangents, anchor_tangents) = primals, tangents
-    live = [t for t in value_tangents + anchor_tangents if not isinstance(t, SymbolicZero)]
-    if not live:
-        return values, value_tangents
-    entry = jnp.ravel(live[0])[0]
-    zero = jnp.where(True, jnp.zeros_like(entry), entry)   # not 0 x entry: NaN stays out
-    return values, tuple(jnp.full_like(value, zero) if changes and isinstance(tangent, SymbolicZero) else tangent
-                         for value, tangent, changes in zip(values, value_tangents, where))
-
-
-tangents_instantiated.defjvp(_tangents_instantiated_jvp, symbolic_zeros=True)
-
-
-def with_evolving_tangents(state, evolving, anchors=()):
-    """`state`, whose floating-point leaves marked True in `evolving` (a pytree of bools like
-    it) carry a tangent whenever the state or `anchors` (what the rollout differentiates with
-    respect to, e.g. the parameters) carry one.
-
-    JAX differentiates a scan by finding which leaves of its carry have a tangent: it
-    differentiates the step with the initial state's pattern, and again whenever a step
-    turns a zero tangent into a nonzero one. A rollout differentiated with respect to
-    material parameters starts with zero tangents on the positions, velocities and
-    histories, and its first step makes them nonzero: JAX differentiated the whole step
-    twice. Marking the leaves that the step changes lets it do so once."""
-    leaves, tree = jax.tree_util.tree_flatten(state)
-    where = tuple(bool(flag) and jnp.issubdtype(leaf.dtype, jnp.inexact)
-                  for flag, leaf in zip(tree.flatten_up_to(evolving), leaves))
-    anchors = tuple(leaf for leaf in jax.tree_util.tree_leaves(anchors) if jnp.issubdtype(leaf.dtype, jnp.inexact))
-    return tree.unflatten(tangents_instantiated(tuple(leaves), anchors, where))
 
 
 def checkpointed_rollout(advance, state, steps, checkpointing):

@@ -23,14 +23,14 @@ from typing import ClassVar, NamedTuple
 import jax.numpy as jnp
 from jax.ad_checkpoint import checkpoint_name
 
-from jaxmpm.tensors import cotangents_once, materialized, stack_last
+from jaxmpm.kernels.fusion import materialized
+from jaxmpm.tensors import stack_last
 
 
 class Stencil(NamedTuple):
     """The nodes a set of points talks to. base: (N, 2) int32; weights: (N, s, s);
     gradients: (d/dx, d/dy), two (N, s, s) arrays [1/m]. Two arrays, not one stacked array:
-    reverse mode turns each read of a part of an array into a pad of the whole array, and
-    the step's gradients ran 4-8 % faster without those pads (docs/benchmarks.md, 2026-12-04)."""
+    reverse mode turns each read of a part of an array into a pad of the whole array."""
 
     base: jnp.ndarray
     weights: jnp.ndarray
@@ -44,8 +44,8 @@ class Linear:
     support: ClassVar[int] = 2
     ghost: ClassVar[int] = 0
     reach: ClassVar[float] = 0.0     # base node = floor(position - reach)
-    # compute the 1-D factors once (`materialized`) rather than in every kernel that reads
-    # the weights: 40 % faster forward with gimp, 3-5 % with bspline2, 4 % slower with linear
+    # compute the 1-D factors once (`kernels.fusion.materialized`) rather than in every
+    # kernel that reads the weights: faster with gimp and bspline2, not with linear
     factors_once: ClassVar[bool] = False
 
     def along(self, offset):
@@ -123,5 +123,4 @@ def stencil(shape, local, nodes, cell):
     weights = along[0][:, :, None] * along[1][:, None, :]
     gradients = (slope[0][:, :, None] * along[1][:, None, :], along[0][:, :, None] * slope[1][:, None, :])
     base = stack_last(base)
-    weights, gradients = cotangents_once((weights, gradients))
     return Stencil(checkpoint_name(base, "stencil"), checkpoint_name(weights, "stencil"), checkpoint_name(gradients, "stencil"))

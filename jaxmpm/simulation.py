@@ -12,6 +12,8 @@ parameter values: a parameter change that raises the wave speed does not shorten
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import itertools
 import math
 
@@ -33,11 +35,11 @@ from jaxmpm.parameters import scene_parameters
 from jaxmpm.probes import make_probes
 from jaxmpm.output import RunFile, deferred_interrupts
 from jaxmpm.results import FileSnapshots, Result
-from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps, state_bytes, with_evolving_tangents
+from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps, state_bytes
 from jaxmpm.scene import Scene, body_speed
 from jaxmpm.seeding import padded, seed_bodies
 from jaxmpm.solver import (
-    BodyBlock, Structure, evolving_leaves, kept_grid_bytes, kept_solve_bytes, make_step, transfer_memory,
+    BodyBlock, Structure, kept_grid_bytes, kept_solve_bytes, make_step, transfer_memory,
 )
 from jaxmpm.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
 from jaxmpm.tracing import collector_paused
@@ -171,6 +173,24 @@ class Simulation:
         self._probes = jax.jit(self._probes_from_state)    # also nested in callers' jits: XLA's defaults
         self.compiled_cache = {}     # compiled work built on this simulation (e.g. calibrations)
         self._advance = jit_with_options(self._advance_one_output, several_fields=self.several_fields)
+        self._forward_only = None
+
+    def forward_only(self) -> "Simulation":
+        """This simulation, compiled for programs that are evaluated, vmapped and differentiated
+        in forward mode only (`jax.jvp`, `jax.jacfwd`: Levenberg-Marquardt Jacobians,
+        ensembles): its step uses the scatter kernel with its own batching rule
+        (`jaxmpm.kernels.scatter`), the same values, which has no reverse mode. Made once."""
+        if self.structure.forward_only:
+            return self
+        if self._forward_only is None:
+            twin = copy.copy(self)
+            twin.structure = dataclasses.replace(self.structure, forward_only=True)
+            twin.step = make_step(twin.structure)
+            twin._probes = jax.jit(twin._probes_from_state)
+            twin.compiled_cache = {}
+            twin._advance = jit_with_options(twin._advance_one_output, several_fields=twin.several_fields)
+            self._forward_only = twin
+        return self._forward_only
 
     def outline_of(self, body, start, stop):
         """(outline, outline_centre) of a prescribed or rigid body whose region is convex (see
@@ -339,7 +359,7 @@ class Simulation:
         the bytes a step of a probe rollout from `initial` keeps for reverse mode."""
         dtype = initial.particles.x.dtype
         state = state_bytes(initial)
-        solves = kept_solve_bytes(self.structure, self.params["materials"], dtype)
+        solves = kept_solve_bytes(self.structure, dtype)
         return state, state + solves, kept_grid_bytes(self.structure, self.point_count, dtype.itemsize)
 
     def reverse_mode_memory(self) -> tuple[Checkpointing, int | None]:
@@ -360,7 +380,6 @@ class Simulation:
     def _probes_from_state(self, params, initial):
         advance = self._advance_and_observe(params, initial.particles.x)
         checkpointing = self.checkpointing_for(initial)
-        initial = with_evolving_tangents(initial, evolving_leaves(self.structure, initial), params)
         final, histories = checkpointed_rollout(advance, initial, self.steps, checkpointing)
         first = self.observe_start(initial)
         probes = {name: jnp.concatenate([first[name][None], histories[name]]) for name in first}

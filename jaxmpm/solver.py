@@ -67,7 +67,7 @@ from jaxmpm.grid import (
 from jaxmpm.materials.base import points_update_voigt
 from jaxmpm.rollout import KEPT_GRID, KEPT_RATE
 from jaxmpm.state import Diagnostics, record_errors
-from jaxmpm.tensors import components, entries, from_entries, materialized, stack_last
+from jaxmpm.tensors import components, entries, from_entries, stack_last
 
 MASS_FLOOR = 1e-10   # nodes lighter than this fraction of the heaviest point count as empty
 
@@ -108,7 +108,9 @@ class Structure:
     "musl" | "usl"; bodies: the contiguous body blocks; fields: number of velocity fields on
     the grid; interfaces: the pairs of fields that meet (`contact.Interface`); point_spacing:
     h / ppc [m] (a rigid body's points are squares of this side); axisymmetric: x is the
-    radius r, y the axial z, and the hoop terms exist (masses, volumes and forces per radian).
+    radius r, y the axial z, and the hoop terms exist (masses, volumes and forces per radian);
+    forward_only: the step is never differentiated in reverse mode, so it may use kernels that
+    have none (`jaxmpm.kernels.scatter`; `Simulation.forward_only`).
     """
 
     layout: GridLayout
@@ -124,6 +126,7 @@ class Structure:
     interfaces: tuple[Interface, ...] = ()
     point_spacing: float = 0.0
     axisymmetric: bool = False
+    forward_only: bool = False
 
     @property
     def has_kinematic_bodies(self):
@@ -190,7 +193,7 @@ def particles_to_grid(particles, stencil, offsets, field, structure):
     if structure.has_contact:
         channels += [per_point(mass) * stencil.gradients[0], per_point(mass) * stencil.gradients[1]]
     layout = structure.layout
-    nodes = scatter_to_nodes(layout, stencil.base, stack_last(channels), field, structure.fields)
+    nodes = scatter_to_nodes(layout, stencil.base, stack_last(channels), field, structure.fields, structure.forward_only)
     mass_gradient = None
     if structure.has_contact:   # the mirror image of a mass gradient flips only its normal component (as at a slip edge)
         mirror = dataclasses.replace(structure.boundaries, **{
@@ -252,7 +255,8 @@ def grid_to_particles(particles, stencil, velocity_old, velocity_new, field, mem
 def remap_velocity(particles, stencil, field, structure, mass, constrain, floor):
     """MUSL: nodal velocity sum_p m_p v_p N_I / m_I of each field from the updated points."""
     layout = structure.layout
-    momentum = scatter_to_nodes(layout, stencil.base, point_momentum(particles, stencil), field, structure.fields)
+    momentum = scatter_to_nodes(layout, stencil.base, point_momentum(particles, stencil), field, structure.fields,
+                                structure.forward_only)
     momentum = checkpoint_name(fold_ghosts(momentum, layout, structure.boundaries, scalars=0), KEPT_GRID)
     return constrain(safe_velocity(momentum, mass, floor))
 
@@ -317,9 +321,8 @@ def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
 
 def material_runs(bodies):
     """The bodies' indices in runs: consecutive free bodies of one material share a run (one
-    update of their points, so the law is compiled once for them: the wall twin example's
-    foundation and backfill; its gradient compiled 17 % faster, docs/benchmarks.md,
-    2026-12-04); any other body is a run of its own."""
+    update of their points, so the law is compiled once for them, e.g. the wall twin
+    example's foundation and backfill); any other body is a run of its own."""
     runs = []
     for index, block in enumerate(bodies):
         previous = bodies[index - 1] if index else None
@@ -359,25 +362,13 @@ def kept_grid_bytes(structure, points, itemsize):
     return (nodes + rates) * itemsize
 
 
-def kept_solve_bytes(structure, materials, dtype):
-    """Bytes of the values one step names KEPT_SOLVES: what each free body's law remembers of
-    its update for its reverse mode (`update_remembering`; e.g. the Perzyna root), at every
-    point of the body. materials: {material name: parameters} (values or shapes)."""
-    total = 0
-    for block in structure.bodies:
-        law = block.law
-        if block.kinematics != "free" or not hasattr(law, "update_remembering"):
-            continue
-        point_state = jax.tree_util.tree_map(lambda values: values[0], law.init_state(1, dtype))
-        tensor = jax.ShapeDtypeStruct((3, 3), dtype)
-
-        def one_point(params, stress, gradient, law=law, point_state=point_state):
-            return law.update_remembering(params, stress, gradient, structure.dt, point_state)[1]
-
-        remembered = jax.eval_shape(one_point, materials[block.material_name], tensor, tensor)
-        per_point = sum(math.prod(leaf.shape) * np.dtype(leaf.dtype).itemsize for leaf in jax.tree_util.tree_leaves(remembered))
-        total += (block.stop - block.start) * int(per_point)
-    return total
+def kept_solve_bytes(structure, dtype):
+    """Bytes of the values one step names KEPT_SOLVES: the roots of implicit equations a law
+    solves at each point (`law.kept_solves_per_point`, e.g. the Perzyna root), which a
+    checkpointed step keeps for its reverse mode."""
+    itemsize = np.dtype(dtype).itemsize
+    return sum((block.stop - block.start) * block.law.kept_solves_per_point * itemsize
+               for block in structure.bodies if block.kinematics == "free")
 
 
 def contact_forces(structure, impulses, dt):
@@ -388,24 +379,6 @@ def contact_forces(structure, impulses, dt):
         for interface, impulse in zip(structure.interfaces, impulses)
         if interface.contact is not None
     }
-
-
-def evolving_leaves(structure, state):
-    """Which leaves of `state` a step changes by amounts that depend on the parameters: a
-    pytree of bools like it (`rollout.with_evolving_tangents`). Masses and error counters do
-    not change; the affine velocities only with APIC; a body's history only when the body is
-    free and its law updates it."""
-    def marked(tree, flag):
-        return jax.tree_util.tree_map(lambda _: flag, tree)
-
-    particles = state.particles
-    histories = tuple(marked(history, block.kinematics == "free" and not getattr(block.law, "keeps_history", False))
-                      for block, history in zip(structure.bodies, particles.history))
-    return state.replace(
-        particles=particles.replace(x=True, v=True, affine=structure.transfer == "apic", stress_voigt=True, volume=True,
-                                    mass=False, history=histories, flags=False),
-        rigid=marked(state.rigid, True), step=False, error_step=False, error_point=False,
-    )
 
 
 def transfer_memory(transfer, flip, relaxation, dt, crossing_time):
@@ -436,11 +409,6 @@ def make_step(structure: Structure):
             return apply_edge_conditions(velocity, mask, layout, structure.boundaries)
 
         floor = MASS_FLOOR * jnp.max(particles.mass)
-        # The positions computed into memory once (`materialized`): the backward pass reads each
-        # step's positions from the stack of kept states, and XLA fused that read (a dynamic
-        # slice) into each shape-function kernel, which then ran ~5x slower than in the forward
-        # pass (gradients 3-9 % faster, docs/benchmarks.md, 2026-12-04).
-        particles = particles.replace(x=materialized(particles.x))
         stencil = jax.named_call(layout.stencil, name="shape_functions")(particles.x)
         offsets = None
         if structure.transfer == "apic":

@@ -5,14 +5,7 @@ s = sigma + p I, q = sqrt(3/2 s:s). Every square root here is safe: value and gr
 finite at zero.
 """
 
-import functools
-
-import jax
 import jax.numpy as jnp
-from jax.custom_batching import custom_vmap
-from jax.custom_derivatives import SymbolicZero
-
-from jaxmpm.adjoints import linear_call, paired_linear
 
 
 def safe_sqrt(x):
@@ -34,82 +27,8 @@ def stack_last(values):
 
     The same array, but XLA:CPU then keeps each entry contiguous (entry-major) instead of
     interleaving the entries point by point, and the kernels that read the entries back one
-    by one read them in place, and stop re-deriving them: with every per-point stack of the
-    step built this way, the step ran 20-40 % faster with 3 x 3 stencils and ~15 % with
-    linear ones (docs/benchmarks.md, 2026-12-03)."""
+    by one read them in place instead of re-deriving them."""
     return jnp.moveaxis(jnp.stack(values), 0, -1)
-
-
-def through_conditional(values):
-    """`values` passed through a `lax.cond` whose predicate, c == c or c != c for an entry c
-    of them, is true for every c (NaN included) yet is not folded by XLA: the false branch
-    never runs."""
-    entry = jax.tree_util.tree_leaves(values)[0].reshape(-1)[0]
-    always = (entry == entry) | (entry != entry)
-    return jax.lax.cond(always, lambda kept: kept, lambda kept: jax.tree_util.tree_map(
-        lambda value: jnp.full_like(value, jnp.nan), kept), values)
-
-
-@custom_vmap
-def conditional_kept_under_vmap(values):
-    """`through_conditional`, whose vmap passes the whole batch through one conditional
-    (JAX's own batching of a cond with a batched predicate makes it a select)."""
-    return through_conditional(values)
-
-
-@conditional_kept_under_vmap.def_vmap
-def _batch_conditional(axis_size, in_batched, values):
-    return conditional_kept_under_vmap(values), in_batched[0]
-
-
-@jax.custom_jvp
-def materialized(values):
-    """`values` (an array or a pytree of arrays), computed once into memory before anything
-    reads them.
-
-    XLA:CPU fuses a cheap producer into each of its consumers, so a value read by several
-    kernels, or read at every stencil entry by a gather, is recomputed each time it is read.
-    Nothing marks a value "compute once" (optimisation barriers are removed before fusion),
-    but a fusion cannot reach into a conditional: the values pass through one whose
-    predicate is always true (`through_conditional`). Used where it measured faster
-    (docs/benchmarks.md, 2026-12-03 and 12-04): the node arrays the gathers read (linear
-    shapes: forward 25-30 % faster, gradient up to 20 %), the 1-D shape-function factors of
-    the 3 x 3 stencils (gimp forward 40 % faster), the Drucker-Prager adjoint's trial
-    cotangent and each step's positions. Exactly the identity in value and derivatives. Under
-    `vmap` (the points of a stress update, calibration starts, ensembles) the batch goes
-    through one conditional (`custom_vmap`): JAX's own rule would batch the predicate and
-    make the cond a select, the same values without the gain (a gradient under a vmap of one
-    ran 16-19 % slower). The tangent is materialized too, as a linear map that is its own
-    transpose, since a `custom_vmap` function has no reverse mode of its own."""
-    return conditional_kept_under_vmap(values)
-
-
-def _materialized_jvp(primals, tangents):
-    """The tangents materialized too, each array by its own linear map (a `linear_call` must
-    not mix inputs with and without a derivative); those without one stay zero."""
-    (values,), (tangents,) = primals, tangents
-    if linear_call is None:       # no paired linear maps in this JAX: JAX's own cond
-        carry = through_conditional
-    else:
-        carry = functools.partial(paired_linear(lambda _, kept: conditional_kept_under_vmap(kept),
-                                                lambda _, kept: conditional_kept_under_vmap(kept)), ())
-    out = jax.tree_util.tree_map(lambda t, v: jnp.zeros_like(v) if isinstance(t, SymbolicZero) else carry(t),
-                                 tangents, values, is_leaf=lambda t: isinstance(t, SymbolicZero))
-    return conditional_kept_under_vmap(values), out
-
-
-materialized.defjvp(_materialized_jvp, symbolic_zeros=True)
-
-
-def cotangents_once(values):
-    """The identity on `values`, whose reverse mode computes their cotangents once
-    (`materialized`) before anything reads them. Applied to the stencil's weights and
-    gradients: their cotangents gather every use in the step, and the reductions that carry
-    them to the 1-D factors each recomputed all of them (gradients 6-9 % faster,
-    docs/benchmarks.md, 2026-12-03)."""
-    once = paired_linear(lambda _, kept: kept, lambda _, cotangent: materialized(cotangent))
-    # one map per array: a linear_call must not mix inputs with and without a derivative
-    return jax.tree_util.tree_map(lambda value: once((), value), values)
 
 
 def components(values):
@@ -157,8 +76,7 @@ def voigt(tensor):
     """[t_xx, t_yy, t_zz, t_xy] of symmetric (..., 3, 3) tensors without out-of-plane shear
     (t_xz = t_yz = 0: every stress and rate of deformation of plane strain and axisymmetry),
     t_xy read as the mean of t_xy and t_yx. The stress updates work on these four values:
-    on the nine entries, five of them zeros or copies, a Drucker-Prager step's reverse
-    mode compiled half again as many kernels (docs/benchmarks.md, 2026-12-04)."""
+    the other five of the nine entries are zeros or copies."""
     e = entries(tensor)
     return [e[0], e[4], e[8], 0.5 * (e[1] + e[3])]
 
@@ -168,18 +86,6 @@ def from_voigt(values):
     xx, yy, zz, xy = values
     zero = jnp.zeros_like(xx)
     return from_entries([xx, xy, zero, xy, yy, zero, zero, zero, zz])
-
-
-def voigt_cotangent(tensor_bar):
-    """The cotangent of [xx, yy, zz, xy] from that of the tensor `from_voigt` built of them."""
-    e = entries(tensor_bar)
-    return [e[0], e[4], e[8], e[1] + e[3]]
-
-
-def tensor_cotangent(voigt_bar):
-    """The cotangent of the (..., 3, 3) tensor `voigt` read, from those of its four values."""
-    xx, yy, zz, xy = voigt_bar
-    return from_voigt([xx, yy, zz, 0.5 * xy])
 
 
 def voigt_deviator(v):
@@ -200,15 +106,6 @@ def rotate_voigt(v, cos, sin):
     xx, yy, zz, xy = v
     cc, ss, cs = cos * cos, sin * sin, cos * sin
     return [cc * xx + ss * yy - 2.0 * cs * xy, ss * xx + cc * yy + 2.0 * cs * xy, zz, cs * (xx - yy) + (cc - ss) * xy]
-
-
-def rotate_voigt_adjoint(v_bar, cos, sin):
-    """The transpose of `rotate_voigt`'s linear map on [xx, yy, zz, xy] (not the rotation
-    by -sin: xy is one value, not two entries)."""
-    b_xx, b_yy, b_zz, b_xy = v_bar
-    cc, ss, cs = cos * cos, sin * sin, cos * sin
-    return [cc * b_xx + ss * b_yy + cs * b_xy, ss * b_xx + cc * b_yy - cs * b_xy, b_zz,
-            2.0 * cs * (b_yy - b_xx) + (cc - ss) * b_xy]
 
 
 def in_plane_rotation(velocity_gradient, dt):

@@ -99,74 +99,6 @@ def test_vmap_over_parameters_matches_single_runs():
     np.testing.assert_allclose(batched, singles, rtol=1e-12)
 
 
-@pytest.mark.parametrize("mode", ["reverse", "forward"])
-def test_derivatives_differentiate_the_step_once(mode, monkeypatch):
-    # JAX finds which leaves of a scan's carry have tangents by differentiating the step, and
-    # again whenever a step gives a new leaf one (positions, velocities, histories: all zero
-    # at t = 0 with respect to a material parameter). The rollout marks the leaves the step
-    # changes (solver.evolving_leaves), so once is enough: on the wall twin (two sand bodies
-    # updated together, `solver.material_runs`; a rigid wall, two contact pairs) the stress
-    # update's tangent (`shared_once`) is asked for once. Without the marks, twice.
-    from jaxmpm.materials import base
-
-    tangents = []
-    traced_once = base.traced_once
-
-    def counting(law, dt, name, **options):
-        tangents.extend([law] if options.get("shared_once") else [])
-        return traced_once(law, dt, name, **options)
-
-    monkeypatch.setattr(base, "traced_once", counting)
-    jax.make_jaxpr(wall_twin_derivative(mode))(30.0)
-    assert len(tangents) == 1
-
-
-def wall_twin_derivative(mode, scene=None):
-    """d/d(friction angle) of the summed probe histories of the wall twin example (or `scene`):
-    `jax.grad` ("reverse") or `jax.jvp` ("forward")."""
-    sim = jaxmpm.Simulation(scene or jaxmpm.load_scene(EXAMPLES / "calibrate_wall_scene.toml"))
-
-    def misfit(friction):
-        probes = sim.probes(jaxmpm.with_values(sim.params, {"sand.friction_angle": friction}))
-        return sum(jnp.sum(history) for history in probes.values())
-
-    return jax.grad(misfit) if mode == "reverse" else (lambda friction: jax.jvp(misfit, (friction,), (1.0,)))
-
-
-def test_a_gradient_traces_the_stress_update_once_per_kind_of_pass(monkeypatch):
-    # materials.base.traced_once: the one-point update is jitted and kept, so its traces are
-    # shared between bodies and passes. The wall twin with its backfill made of a second sand
-    # (the same law, so the two bodies are updated apart): a gradient traced the update six
-    # times (two sand bodies x the forward pass, the derivative's recomputation of it, the
-    # tangent); now the tangent once for both bodies, and the forward pass once or twice (JAX
-    # keys its trace cache on the context too).
-    import dataclasses
-
-    from jaxmpm.materials import base
-    from jaxmpm.materials.drucker_prager import DruckerPragerLaw
-
-    scene = jaxmpm.load_scene(EXAMPLES / "calibrate_wall_scene.toml")
-    backfill = next(body for body in scene.bodies if body.name == "backfill")
-    scene = dataclasses.replace(
-        scene, materials={**scene.materials, "backfill_sand": scene.materials["sand"]},
-        bodies=tuple(dataclasses.replace(body, material="backfill_sand") if body is backfill else body for body in scene.bodies))
-
-    traces = []
-    update = DruckerPragerLaw.update_remembering
-
-    def counting(self, *args, **kwargs):
-        traces.append(kwargs.get("shared_once"))
-        return update(self, *args, **kwargs)
-
-    monkeypatch.setattr(DruckerPragerLaw, "update_remembering", counting)
-    base.traced_once.cache_clear()          # traces of other tests kept in it
-    try:
-        jax.make_jaxpr(wall_twin_derivative("reverse", scene))(30.0)
-    finally:
-        base.traced_once.cache_clear()      # none traced through the counting update stays
-    assert traces.count(True) == 1 and traces.count(False) <= 2
-
-
 def test_programs_are_traced_with_the_garbage_collector_paused():
     # jaxmpm.tracing: Python's cyclic collector is paused while jaxmpm traces its programs
     # (a fifth of a gradient's tracing and lowering went to its collections), and left as it
@@ -222,20 +154,30 @@ VISCOPLASTIC_BLOCK = BLOCK.replace(
 ).replace("duration = 0.01", "duration = 0.03")
 
 
+def equations(jaxpr):
+    """Every equation of `jaxpr` and of the jaxprs nested in its equations."""
+    for equation in jaxpr.eqns:
+        yield equation
+        for value in equation.params.values():
+            for inner in value if isinstance(value, (tuple, list)) else (value,):
+                inner = getattr(inner, "jaxpr", inner)
+                if hasattr(inner, "eqns"):
+                    yield from equations(inner)
+
+
 def test_recomputed_steps_keep_the_perzyna_roots_instead_of_solving_again():
     # rollout.KEPT_SOLVES: "recompute" and "recompute_grid" keep each point's Perzyna root
-    # from the forward pass, so the compiled gradient holds the Newton loop of the forward
-    # pass only, not a second one in the step its backward pass runs again (viscoplastic
-    # gradients 11-16 % faster). The gradient is that of the rollout storing everything.
+    # from the forward pass, so the gradient's program holds the Newton loop of the forward
+    # pass only, not a second one in the step its backward pass runs again. The gradient is that of the rollout storing everything.
     # The released block yields at every point, so the viscoplastic return is what is
     # differentiated.
     results = {}
     for step in ("store", "recompute", "recompute_grid"):
         sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(VISCOPLASTIC_BLOCK), jaxmpm.Checkpointing(segment=10**6, step=step))
-        compiled = jax.jit(jax.value_and_grad(lambda p, sim=sim: settlement_measure(sim, p))).lower(sim.params).compile()
-        newton_loops = [line for line in compiled.as_text().splitlines() if " while(" in line and "update_stress" in line]
+        program = jax.value_and_grad(lambda p, sim=sim: settlement_measure(sim, p))
+        newton_loops = [e for e in equations(jax.make_jaxpr(program)(sim.params).jaxpr) if e.primitive.name == "while"]
         assert len(newton_loops) == 1, (step, len(newton_loops))
-        results[step] = compiled(sim.params)
+        results[step] = jax.jit(program)(sim.params)
     assert np.all(np.asarray(sim.final_state().particles.history[0]["plastic_strain"]) > 0.0)
     # "auto"'s budget counts the kept roots (one value a point and step) with the states
     from jaxmpm.rollout import state_bytes
@@ -243,7 +185,7 @@ def test_recomputed_steps_keep_the_perzyna_roots_instead_of_solving_again():
 
     initial = sim.initial_state()
     itemsize = initial.particles.x.dtype.itemsize
-    assert kept_solve_bytes(sim.structure, sim.params["materials"], initial.particles.x.dtype) == sim.point_count * itemsize
+    assert kept_solve_bytes(sim.structure, initial.particles.x.dtype) == sim.point_count * itemsize
     without_roots = sim.steps * (state_bytes(initial) + kept_grid_bytes(sim.structure, sim.point_count, itemsize))
     for budget, chosen in ((without_roots + sim.steps * sim.point_count * itemsize, "recompute_grid"), (without_roots, "recompute")):
         tight = jaxmpm.Simulation(sim.scene, jaxmpm.Checkpointing(budget=budget))

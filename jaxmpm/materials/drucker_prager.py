@@ -29,18 +29,19 @@ History variable: `plastic_strain`, the accumulated equivalent plastic strain (s
 """
 
 import dataclasses
-import functools
 from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
 
 from jaxmpm import tensors
 from jaxmpm.errors import SceneError
 from jaxmpm.keys import Key, is_concrete
 from jaxmpm.materials.base import ELASTIC_KEYS, Material, check_keys
-from jaxmpm.materials.linear_elastic import elastic_moduli, elastic_trial_adjoint, elastic_trial_voigt, p_wave_speed
+from jaxmpm.rollout import KEPT_SOLVES
+from jaxmpm.materials.linear_elastic import elastic_moduli, elastic_trial_voigt, p_wave_speed
 
 CONES = {
     # m as a function of sin(angle); each matches Mohr-Coulomb in one stress state.
@@ -54,48 +55,33 @@ NEWTON_STEPS = 8   # at most; 6 reach round-off (|x - x_bisection| < 1e-14) over
 TINY = 1e-30
 
 
-def as_computed(values):
-    """`values` unchanged (where forward mode would compute them once: `update_remembering`)."""
-    return values
-
-
 def cone_slope(cone, angle_degrees):
     """m of the chosen cone for a friction (or dilation) angle in degrees."""
     return CONES[cone](jnp.sin(jnp.deg2rad(angle_degrees)))
 
 
-def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent, root=None):
+def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent):
     """x in [0, 1] with dl = x f*/H solving the backward-Euler Perzyna equation (see module).
     trial_overstress f* > 0; hardening H; pressure_trial p* > 0; dilation_rate K m_psi;
     m the cone slope; rate = gamma dt; exponent N. Value from bracketed Newton steps on
-    t = logit(x) (`perzyna_root_of`; or `root`, that t already solved: the reverse mode reads the
-    forward pass's), derivatives from the implicit function theorem (`fraction_at_root`).
+    t = logit(x) (`perzyna_root_of`), derivatives from the implicit function theorem
+    (`fraction_at_root`). The root is named KEPT_SOLVES: a checkpointed step keeps it, and
+    its recomputation in reverse mode does not solve again (`jaxmpm.rollout`).
     """
     arguments = (trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent)
-    root = jax.lax.stop_gradient(perzyna_root_of(*arguments) if root is None else root)
+    root = checkpoint_name(perzyna_root_of(*arguments), KEPT_SOLVES)
     return fraction_at_root(root, *arguments)
 
 
-@jax.custom_jvp
 def fraction_at_root(root, *arguments):
-    """x = sigmoid(t) at the root t of the Perzyna equation with these `arguments`; derivatives
-    (of every order) those of `fraction_by_implicit_function`. Undifferentiated, the residual
-    and its slope at the root are not computed (a forward pass spent ~6 % of a viscoplastic
-    step on them; docs/benchmarks.md, 2026-12-04)."""
-    return jax.nn.sigmoid(root)
-
-
-def fraction_by_implicit_function(root, *arguments):
-    """sigmoid(t - (R(t) - R(t)) / (dR/dt)) at the root t: the value sigmoid(t), the derivative
-    with respect to the arguments -(dR/dtheta) / (dR/dt) by the implicit function theorem,
-    with the root and the slope held."""
+    """x = sigmoid(t) at the root t of the Perzyna equation with these `arguments`, written
+    sigmoid(t - (R(t) - R(t)) / (dR/dt)) with the root and the slope held: the value is
+    sigmoid(t), and its derivative with respect to the arguments is -(dR/dtheta) / (dR/dt),
+    the implicit function theorem's."""
     residual = perzyna_equation(*arguments)["residual"]
     slope = jax.lax.stop_gradient(jax.grad(residual)(root))
     value = residual(root)
     return jax.nn.sigmoid(root - (value - jax.lax.stop_gradient(value)) / slope)
-
-
-fraction_at_root.defjvp(lambda primals, tangents: jax.jvp(fraction_by_implicit_function, primals, tangents))
 
 
 def perzyna_root_of(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent):
@@ -128,9 +114,8 @@ def perzyna_residual_and_slope(t, pressure_trial, growth, m, exponent, constant)
     """(R(t), dR/dt) of the Perzyna residual of `perzyna_fraction` (no derivative through
     them: they steer the Newton steps only), written with one exponential, e = exp(-|t|):
     log sigmoid(+-t) = -max(-+t, 0) - log1p(e), sigmoid(t) = 1 / (1 + e) for t >= 0, e / (1 + e)
-    below, and dR/dt = (1 - x) + N x + N growth x (1 - x) / p(x). JAX's own jvp of the
-    log-sigmoids (log-add-exp with its special cases) cost a third more: the viscoplastic
-    step ran 25-35 % faster with this (docs/benchmarks.md, 2026-12-04)."""
+    below, and dR/dt = (1 - x) + N x + N growth x (1 - x) / p(x) (cheaper than JAX's jvp of
+    the log-sigmoids, a log-add-exp with its special cases)."""
     e = jnp.exp(-jnp.abs(t))
     tail = jnp.log1p(e)
     x = jnp.where(t >= 0.0, 1.0, e) / (1.0 + e)
@@ -166,9 +151,7 @@ def bracketed_newton(residual_and_slope, low, high, start):
 
     At most NEWTON_STEPS steps; the loop ends early once every point's last step was a
     Newton step shorter than sqrt(eps) (1 + |t|): convergence is quadratic there, so the
-    next step would move t by round-off only. The viscoplastic example scenes then ran 10-18 %
-    faster forward and 8-9 % in reverse mode than with every step taken
-    (docs/benchmarks.md, 2026-12-04)."""
+    next step would move t by round-off only."""
     tolerance = float(np.finfo(start.dtype).eps) ** 0.5
 
     def newton_step(carry):
@@ -268,6 +251,11 @@ class DruckerPragerLaw:
     cone: str = "paper"
     viscoplastic: bool = False
 
+    @property
+    def kept_solves_per_point(self):
+        """Values a point's update solves for and a checkpointed step keeps: the Perzyna root."""
+        return 1 if self.viscoplastic else 0
+
     def init_state(self, count, dtype):
         return {"plastic_strain": jnp.zeros((count,), dtype)}
 
@@ -276,23 +264,11 @@ class DruckerPragerLaw:
 
     def update(self, params, stress, velocity_gradient, dt, state):
         """One point: Jaumann rotation, elastic trial, plastic / viscoplastic correction."""
-        return self.update_remembering(params, stress, velocity_gradient, dt, state)[0]
-
-    def update_remembering(self, params, stress, velocity_gradient, dt, state, remembered=None, shared_once=False):
-        """`update`, and what its reverse mode reads instead of solving again: the root of the
-        Perzyna equation ({"perzyna_root": t}; {} when rate-independent). Given `remembered`,
-        the root is not solved for. shared_once: compute the values that several outputs read
-        once, before they read them (`tensors.materialized`: the trial stress, p and q, dl, the
-        ratio q'/q and p'), as forward mode does (`points_update`): each stress entry's tangent
-        was its own kernel that re-derived them all, and Jacobians of the calibration examples
-        ran 10-28 % faster so; the forward pass keeps XLA's own choice, 5-9 % faster at 16k
-        points (docs/benchmarks.md, 2026-12-04)."""
         constants = self.constants(params)
         trial = elastic_trial_voigt(constants, stress, velocity_gradient, dt)
-        once = tensors.materialized if shared_once else as_computed
-        returned = self.return_state(constants, once(trial), dt, once=once, **(remembered or {}))
-        updated = tensors.from_voigt(returned["stress"]), {"plastic_strain": state["plastic_strain"] + returned["increment"]}
-        return updated, ({"perzyna_root": returned["perzyna_root"]} if self.viscoplastic else {})
+        returned = self.return_state(constants, trial, dt)
+        return (tensors.from_voigt(returned["stress"]),
+                {"plastic_strain": state["plastic_strain"] + returned["increment"]})
 
     def correct(self, params, trial, dt):
         """Return the trial stress to the admissible set: (stress, plastic multiplier dl)."""
@@ -300,8 +276,7 @@ class DruckerPragerLaw:
         return tensors.from_voigt(state["stress"]), state["increment"]
 
     def constants(self, params):
-        """The scalars the return reads (K, G, m, K m_psi, and gamma, N when viscoplastic):
-        what update_adjoint's cotangents are taken with respect to."""
+        """The scalars the return reads: K, G, m, K m_psi, and gamma, N when viscoplastic."""
         constants = elastic_moduli(params)
         constants["slope"] = cone_slope(self.cone, params["friction_angle"])
         constants["dilation_rate"] = constants["bulk"] * cone_slope(self.cone, params["dilation_angle"])
@@ -309,17 +284,13 @@ class DruckerPragerLaw:
             constants.update(fluidity=params["fluidity"], exponent=params["exponent"])
         return constants
 
-    def return_state(self, constants, trial, dt, perzyna_root=None, once=None):
+    def return_state(self, constants, trial, dt):
         """The return of the trial stress [xx, yy, zz, xy] (`tensors.voigt`) to the admissible
-        set, with the intermediates its adjoint reads: {"stress": [xx, yy, zz, xy], "increment":
-        dl, ...} (see the module docstring).
-        perzyna_root: the root t of the Perzyna equation, when already solved; once: applied to
-        the intermediates that several outputs read (see `update_remembering`; None: as computed)."""
-        once = once or as_computed
+        set: {"stress": [xx, yy, zz, xy], "increment": dl} (see the module docstring)."""
         shear, m, dilation_rate = constants["shear"], constants["slope"], constants["dilation_rate"]
         pressure = -(trial[0] + trial[1] + trial[2]) / 3.0
         trial_deviator = tensors.voigt_deviator(trial)
-        pressure, deviatoric = once((pressure, tensors.voigt_von_mises_of_deviator(trial_deviator)))
+        deviatoric = tensors.voigt_von_mises_of_deviator(trial_deviator)
         overstress = deviatoric - m * pressure
         hardening = 3.0 * shear + m * dilation_rate
 
@@ -331,96 +302,16 @@ class DruckerPragerLaw:
         safe_pressure = jnp.where(to_cone, pressure, 1.0)
         safe_deviatoric = jnp.where(to_cone, deviatoric, 1.0)
 
-        fraction, perzyna = 1.0, None
+        fraction = 1.0
         if self.viscoplastic:
             safe_rate = jnp.where(to_cone, constants["fluidity"] * dt, 1.0)
-            perzyna = (safe_overstress, hardening, safe_pressure, dilation_rate, m, safe_rate, constants["exponent"])
-            if perzyna_root is None:
-                perzyna_root = perzyna_root_of(*perzyna)
-            fraction = perzyna_fraction(*perzyna, root=perzyna_root)
-        multiplier = once(fraction * safe_overstress / hardening)
-        new_deviatoric = safe_deviatoric - 3.0 * shear * multiplier
-        new_pressure = safe_pressure + dilation_rate * multiplier
-        ratio, new_pressure = once((new_deviatoric / safe_deviatoric, new_pressure))
+            fraction = perzyna_fraction(safe_overstress, hardening, safe_pressure, dilation_rate, m, safe_rate,
+                                        constants["exponent"])
+        multiplier = fraction * safe_overstress / hardening
+        ratio = (safe_deviatoric - 3.0 * shear * multiplier) / safe_deviatoric      # q' / q
+        new_pressure = safe_pressure + dilation_rate * multiplier                     # p'
         returned = [value * ratio - (new_pressure if index < 3 else 0.0) for index, value in enumerate(trial_deviator)]
         stress = [jnp.where(to_cone, r, jnp.where(to_apex, jnp.zeros_like(t), t)) for r, t in zip(returned, trial)]
         apex_multiplier = deviatoric / (3.0 * shear)
         increment = jnp.where(to_cone, multiplier, jnp.where(to_apex, apex_multiplier, 0.0))
-        return {"stress": stress, "increment": increment, "pressure": pressure, "deviator": trial_deviator,
-                "deviatoric": deviatoric, "safe_overstress": safe_overstress, "safe_deviatoric": safe_deviatoric,
-                "hardening": hardening, "to_cone": to_cone, "to_apex": to_apex, "fraction": fraction,
-                "perzyna": perzyna, "perzyna_root": perzyna_root, "multiplier": multiplier, "ratio": ratio}
-
-    def update_adjoint(self, constants, stress, velocity_gradient, dt, state, remembered, stress_bar, state_bar):
-        """Reverse mode of `update` at one point, by hand: (constants_bar, stress_bar, L_bar,
-        state_bar). Recomputes the trial and the return, then runs their chain rule backwards:
-        sigma = r s - p' I on the cone (r = q'/q, q' = q - 3 G dl, p' = p + K m_psi dl,
-        dl = x f/H, f = q - m p, H = 3 G + m K m_psi; x = 1, or the Perzyna fraction, whose
-        cotangents come from its own implicit-function VJP at the remembered root), sigma = 0 at the apex
-        (dl = q / 3G), sigma = trial when elastic; then q = sqrt(3/2 s:s), s = dev(t), and the
-        elastic trial (elastic_trial_adjoint); on the four values of `tensors.voigt` (s:s counts
-        s_xy twice)."""
-        shear, m, dilation_rate = constants["shear"], constants["slope"], constants["dilation_rate"]
-        trial = elastic_trial_voigt(constants, stress, velocity_gradient, dt)
-        # computed once: every kernel of the adjoint re-derived the trial from sigma and L
-        # (gradients 3-7 % faster, docs/benchmarks.md, 2026-12-04)
-        trial = tensors.materialized(trial)
-        r = self.return_state(constants, trial, dt, **remembered)
-        cone, apex = r["to_cone"], r["to_apex"]
-        zero = jnp.zeros_like(r["pressure"])
-        out_bar = tensors.voigt_cotangent(stress_bar)
-        increment_bar = state_bar["plastic_strain"]
-
-        on_cone = [jnp.where(cone, value, zero) for value in out_bar]
-        ratio_bar = sum(b * s for b, s in zip(on_cone, r["deviator"]))
-        new_pressure_bar = -(on_cone[0] + on_cone[1] + on_cone[2])
-        new_deviatoric_bar = ratio_bar / r["safe_deviatoric"]
-        safe_deviatoric_bar = new_deviatoric_bar - ratio_bar * r["ratio"] / r["safe_deviatoric"]
-        multiplier_bar = jnp.where(cone, increment_bar, zero) - 3.0 * shear * new_deviatoric_bar + dilation_rate * new_pressure_bar
-        bars = {"shear": -3.0 * r["multiplier"] * new_deviatoric_bar, "dilation_rate": r["multiplier"] * new_pressure_bar}
-        safe_pressure_bar = new_pressure_bar
-        # dl = x f / H
-        hardening = r["hardening"]
-        fraction_bar = multiplier_bar * r["safe_overstress"] / hardening
-        safe_overstress_bar = multiplier_bar * r["fraction"] / hardening
-        hardening_bar = -multiplier_bar * r["multiplier"] / hardening
-        bars["slope"] = zero
-        if self.viscoplastic:
-            _, fraction_vjp = jax.vjp(functools.partial(perzyna_fraction, root=r["perzyna_root"]), *r["perzyna"])
-            f_bar, h_bar, p_bar, dilation_rate_bar, m_bar, gamma_dt_bar, exponent_bar = fraction_vjp(fraction_bar)
-            safe_overstress_bar = safe_overstress_bar + f_bar
-            hardening_bar = hardening_bar + h_bar
-            safe_pressure_bar = safe_pressure_bar + p_bar
-            bars["dilation_rate"] = bars["dilation_rate"] + dilation_rate_bar
-            bars["slope"] = m_bar
-            bars["fluidity"] = jnp.where(cone, gamma_dt_bar * dt, zero)
-            bars["exponent"] = exponent_bar
-        # H = 3 G + m K m_psi
-        bars["shear"] = bars["shear"] + 3.0 * hardening_bar
-        bars["slope"] = bars["slope"] + dilation_rate * hardening_bar
-        bars["dilation_rate"] = bars["dilation_rate"] + m * hardening_bar
-        # f = q - m p (on the cone), and the safe stand-ins
-        overstress_bar = jnp.where(cone, safe_overstress_bar, zero)
-        deviatoric_bar = overstress_bar + jnp.where(cone, safe_deviatoric_bar, zero)
-        pressure_bar = jnp.where(cone, safe_pressure_bar, zero) - m * overstress_bar
-        bars["slope"] = bars["slope"] - r["pressure"] * overstress_bar
-        # apex: dl = q / 3G
-        at_apex = jnp.where(apex, increment_bar, zero)
-        deviatoric_bar = deviatoric_bar + at_apex / (3.0 * shear)
-        bars["shear"] = bars["shear"] - at_apex * r["deviatoric"] / (3.0 * shear * shear)
-        # q = sqrt(3/2 s:s) (gradient 0 at q = 0, as safe_sqrt), s = dev(t), p = -tr(t)/3
-        positive = r["deviatoric"] > 0.0
-        slope_q = jnp.where(positive, 1.5 * deviatoric_bar / jnp.where(positive, r["deviatoric"], 1.0), zero)
-        deviator_bar = [jnp.where(cone, r["ratio"], zero) * b + slope_q * s * (2.0 if index == 3 else 1.0)
-                        for index, (b, s) in enumerate(zip(on_cone, r["deviator"]))]
-        elastic = ~(cone | apex)
-        mean_bar = -pressure_bar / 3.0
-        trial_bar = [b + (mean_bar if index < 3 else 0.0) + jnp.where(elastic, o, zero)
-                     for index, (b, o) in enumerate(zip(tensors.voigt_deviator(deviator_bar), out_bar))]
-        # computed once: each entry of the adjoint's outputs re-derived all of them (gradients 2-4 %
-        # faster, docs/benchmarks.md, 2026-12-04)
-        trial_bar = tensors.materialized(trial_bar)
-        moduli_bar, stress_bar, gradient_bar = elastic_trial_adjoint(constants, stress, velocity_gradient, dt, trial_bar)
-        bars["bulk"] = moduli_bar["bulk"]
-        bars["shear"] = bars["shear"] + moduli_bar["shear"]
-        return bars, stress_bar, gradient_bar, state_bar
+        return {"stress": stress, "increment": increment}

@@ -52,40 +52,6 @@ def elastic_trial_voigt(moduli, stress, velocity_gradient, dt):
     return [a + b for a, b in zip(rotated, increment)]
 
 
-def elastic_trial_adjoint(moduli, stress, velocity_gradient, dt, trial_bar):
-    """Reverse mode of elastic_trial_voigt, by hand: from the cotangent of the trial's
-    [xx, yy, zz, xy], the cotangents (bulk, shear, stress (..., 3, 3), L (..., 3, 3)).
-
-    t = Q sigma Q^T + dt (2 G dev d + K tr(d) I), d = sym(L), Q the rotation (cos, sin) of
-    a = dt (L_yx - L_xy) / 4: sigma_bar is the transpose of the rotation applied to t_bar; the
-    increment map is self-adjoint, so d_bar = dt (2 G dev t_bar + K tr(t_bar) I);
-    G_bar = 2 dt t_bar . dev d, K_bar = dt tr(t_bar) tr(d); a_bar = t_bar . dR/da with
-    R = Q sigma Q^T, Q = exp(theta J) the rotation by theta = 2 atan(a) about z (J its
-    generator, J_yx = 1 = -J_xy): dR/dtheta = J R - R J = [-2 R_xy, 2 R_xy, 0, R_xx - R_yy],
-    dtheta/da = 2 / (1 + a^2).
-    """
-    cos, sin = tensors.in_plane_rotation(velocity_gradient, dt)
-    stress_bar = tensors.rotate_voigt_adjoint(trial_bar, cos, sin)
-    a = tensors.spin_parameter(velocity_gradient, dt)
-    rotated, tb = tensors.rotate_voigt(tensors.voigt(stress), cos, sin), trial_bar
-    turning = 2.0 * rotated[3] * (tb[1] - tb[0]) + tb[3] * (rotated[0] - rotated[1])
-    a_bar = 2.0 * turning / (1.0 + a * a)
-    a_bar = tensors.materialized(a_bar)   # read by two entries of L_bar, each re-derived it (gradients 1-4 % faster)
-
-    rate = rate_of_deformation(velocity_gradient)
-    trace_bar = tb[0] + tb[1] + tb[2]
-    rate_bar = elastic_increment_voigt(moduli, trial_bar, dt)
-    spin_bar = 0.25 * dt * a_bar
-    zero = jnp.zeros_like(trace_bar)
-    gradient_bar = [rate_bar[0], 0.5 * rate_bar[3] - spin_bar, zero, 0.5 * rate_bar[3] + spin_bar, rate_bar[1],
-                    zero, zero, zero, rate_bar[2]]
-    moduli_bar = {
-        "bulk": dt * trace_bar * (rate[0] + rate[1] + rate[2]),
-        "shear": 2.0 * dt * sum(b * v for b, v in zip(trial_bar, tensors.voigt_deviator(rate))),
-    }
-    return moduli_bar, tensors.tensor_cotangent(stress_bar), tensors.from_entries(gradient_bar)
-
-
 def elastic_trial(params, stress, velocity_gradient, dt):
     """Q sigma Q^T + dt (K tr(d) I + 2 G dev(d)): the stress rotated with the step's spin
     (Jaumann, Hughes-Winget) plus the elastic increment; the trial state of every model.
@@ -105,7 +71,7 @@ def p_wave_speed(params):
 class ElasticLaw:
     """The static side of `LinearElastic`: no options, so one compiled update for every value."""
 
-    keeps_history = True      # update returns the history unchanged
+    kept_solves_per_point = 0     # no implicit equation solved per point
 
     def init_state(self, count, dtype):
         """History variables: only the accumulated plastic strain (always zero here)."""
@@ -114,17 +80,6 @@ class ElasticLaw:
     def update(self, params, stress, velocity_gradient, dt, state):
         """One point: rotate sigma with the step's spin, add the elastic increment."""
         return elastic_trial(params, stress, velocity_gradient, dt), state
-
-    def constants(self, params):
-        """What update_adjoint's cotangents are taken with respect to: the moduli K and G."""
-        return elastic_moduli(params)
-
-    def update_adjoint(self, constants, stress, velocity_gradient, dt, state, remembered, stress_bar, state_bar):
-        """Reverse mode of `update` at one point, by hand (see elastic_trial_adjoint):
-        (constants_bar, stress_bar, L_bar, state_bar); nothing is remembered."""
-        constants_bar, stress_bar, gradient_bar = elastic_trial_adjoint(
-            constants, stress, velocity_gradient, dt, tensors.voigt_cotangent(stress_bar))
-        return constants_bar, stress_bar, gradient_bar, state_bar
 
     def wave_speed(self, params):
         return p_wave_speed(params)
