@@ -115,17 +115,15 @@ def compiled_problem(experiments, groups, space, optimizer_name, learning_rate) 
     if key in cache:
         return cache[key]
     residuals = problem_residuals(groups)
-    forward_residuals = problem_residuals(groups, forward_only=True)     # for forward mode only
+    forward_residuals = problem_residuals(groups, derivatives="forward")
+    reverse_residuals = problem_residuals(groups, derivatives="reverse")
     count = sum(e.observations.count for e in experiments)
-
-    def residuals_of_z(z, data, bases):
-        return residuals(space.to_physical(z), data, bases)
 
     def forward_residuals_of_z(z, data, bases):
         return forward_residuals(space.to_physical(z), data, bases)
 
     def loss_of_z(z, data, bases):
-        r = residuals_of_z(z, data, bases)
+        r = reverse_residuals(space.to_physical(z), data, bases)
         return 0.5 * jnp.sum(r * r) / count
 
     batched = functools.partial(over_starts, in_axes=(0, 0, None, None))

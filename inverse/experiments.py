@@ -189,14 +189,15 @@ def residual_function(sim, observations: Observations, insert):
     of one experiment, the simulated probes (averaged over each channel's window) linearly
     interpolated to the observation times;
     `insert(values, base)` puts the fitted values (P,) into the parameter pytree `base`.
-    forward_only=True runs `sim.forward_only()`: the same values, faster under forward mode
-    (the Levenberg-Marquardt Jacobians), with no reverse mode."""
+    derivatives: which derivatives the residuals are taken with, "any", "forward" (the
+    Levenberg-Marquardt Jacobians) or "reverse" (gradients of a loss): the simulation's variant
+    with the kernels for it (`Simulation.for_derivatives`), the same values."""
     time = jnp.asarray(sim.time, sim.dtype)
     layout = [(name, channel.components, window_steps(channel.window, sim.dt))
               for name, channel in observations.channels.items()]
 
-    def residuals(values, data, base, forward_only=False):
-        probes = (sim.forward_only() if forward_only else sim).probes(insert(values, base))
+    def residuals(values, data, base, derivatives="any"):
+        probes = sim.for_derivatives(derivatives).probes(insert(values, base))
         parts = []
         for (name, components, width), (times, observed, scale) in zip(layout, data):
             history = window_mean(probes[name], width)
@@ -265,14 +266,14 @@ def experiment_bases(groups, bases, count):
     return unstacked
 
 
-def problem_residuals(groups, forward_only=False):
+def problem_residuals(groups, derivatives="any"):
     """residuals(values, data, bases) -> (M,): every experiment's residuals, in group order
-    (a group of several members is vmapped); forward_only: see `residual_function`."""
+    (a group of several members is vmapped); derivatives: see `residual_function`."""
 
     def residuals(values, data, bases):
         parts = []
         for group, group_data, group_base in zip(groups, data, bases):
-            of_member = functools.partial(group.residuals, forward_only=forward_only)
+            of_member = functools.partial(group.residuals, derivatives=derivatives)
             if len(group.members) == 1:
                 parts.append(of_member(values, group_data, group_base))
             else:

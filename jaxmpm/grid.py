@@ -17,6 +17,9 @@ import numpy as np
 from jaxmpm.shapes import make_shape, stencil
 from jaxmpm.kernels.fusion import materialized
 from jaxmpm.kernels.scatter import batched_add_to_nodes
+from jaxmpm.kernels.transposes import (
+    gather_with_scatter_transpose, scatter_with_gather_transpose, sum_with_broadcast_transpose,
+)
 from jaxmpm.tensors import stack_last
 
 
@@ -125,27 +128,50 @@ def read_at_stencils(layout, base, nodes, support, field=None):
     return jax.lax.gather(nodes, starts, numbers, window, mode="promise_in_bounds")
 
 
-def scatter_to_nodes(layout, base, values, field=None, fields=1, forward_only=False):
+def scatter_to_nodes(layout, base, values, field=None, fields=1, derivatives="any"):
     """Stencil values (N, s, s, C) added onto the node arrays (fields, nx, ny, C) of each
-    point's own field (`add_to_nodes`). forward_only: with the scatter's own batching rule,
-    which has no reverse mode (`jaxmpm.kernels.scatter`)."""
-    if forward_only:
-        field = jnp.zeros(len(base), jnp.int32) if field is None else field
+    point's own field (`add_to_nodes`). derivatives: "any" (plain JAX), "forward" (with the
+    scatter's own batching rule, `jaxmpm.kernels.scatter`) or "reverse" (with `read_at_stencils`
+    as its transpose, `jaxmpm.kernels.transposes`): see `solver.Structure`."""
+    field = jnp.zeros(len(base), jnp.int32) if field is None else field
+    if derivatives == "forward":
         return batched_add_to_nodes(add_to_nodes, layout, base, values, field, fields)
+    if derivatives == "reverse":
+        support = values.shape[1]
+        return scatter_with_gather_transpose(
+            lambda base, values, field: add_to_nodes(layout, base, values, field, fields),
+            lambda base, nodes, field: read_at_stencils(layout, base, materialized(nodes), support, field),
+            base, values, field)
     return add_to_nodes(layout, base, values, field, fields)
 
 
-def gather_from_nodes(layout, base, nodes, support, field=None):
+def gather_from_nodes(layout, base, nodes, support, field=None, derivatives="any"):
     """Node values (fields, nx, ny, C) read at each point's s x s stencil: (N, s, s, C)
-    (`read_at_stencils`)."""
-    return read_at_stencils(layout, base, materialized(nodes), support, field)
+    (`read_at_stencils`), the node values computed once before (`kernels.fusion`).
+    derivatives: see `scatter_to_nodes`."""
+    field = jnp.zeros(len(base), jnp.int32) if field is None else field
+    nodes = materialized(nodes)
+    if derivatives == "reverse":
+        fields = nodes.shape[0]
+        return gather_with_scatter_transpose(
+            lambda base, nodes, field: read_at_stencils(layout, base, nodes, support, field),
+            lambda base, values, field: add_to_nodes(layout, base, values, field, fields),
+            base, nodes, field)
+    return read_at_stencils(layout, base, nodes, support, field)
 
 
-def sum_over_stencil(values):
+def add_over_stencil(values):
     """Sum (N, s, s, ...) over the s x s stencil nodes, written as s^2 - 1 adds: XLA:CPU runs
     such short reductions (and einsums with a point batch axis) as slow library kernels."""
     support = values.shape[1]
     return sum(values[:, a, b] for a in range(support) for b in range(support))
+
+
+def sum_over_stencil(values, derivatives="any"):
+    """`add_over_stencil`; derivatives: see `scatter_to_nodes`."""
+    if derivatives == "reverse":
+        return sum_with_broadcast_transpose(add_over_stencil, values)
+    return add_over_stencil(values)
 
 
 EDGES = {"left": (0, 0), "right": (0, -1), "bottom": (1, 0), "top": (1, -1)}   # (axis, side)

@@ -173,24 +173,37 @@ class Simulation:
         self._probes = jax.jit(self._probes_from_state)    # also nested in callers' jits: XLA's defaults
         self.compiled_cache = {}     # compiled work built on this simulation (e.g. calibrations)
         self._advance = jit_with_options(self._advance_one_output, several_fields=self.several_fields)
-        self._forward_only = None
+        self._variants = {}         # the same simulation for other `derivatives` (`for_derivatives`)
 
     def forward_only(self) -> "Simulation":
         """This simulation, compiled for programs that are evaluated, vmapped and differentiated
         in forward mode only (`jax.jvp`, `jax.jacfwd`: Levenberg-Marquardt Jacobians,
-        ensembles): its step uses the scatter kernel with its own batching rule
-        (`jaxmpm.kernels.scatter`), the same values, which has no reverse mode. Made once."""
-        if self.structure.forward_only:
+        ensembles): its particle-to-grid scatter batches with its own rule
+        (`jaxmpm.kernels.scatter`). The same values; reverse mode raises. Made once."""
+        return self.for_derivatives("forward")
+
+    def reverse_only(self) -> "Simulation":
+        """This simulation, compiled for programs differentiated in reverse mode only
+        (`jax.grad`, `jax.vjp`): its transfers transpose into each other
+        (`jaxmpm.kernels.transposes`). The same values and gradients; forward mode raises.
+        Made once."""
+        return self.for_derivatives("reverse")
+
+    def for_derivatives(self, derivatives: str) -> "Simulation":
+        """This simulation with `Structure.derivatives` = derivatives ("any", "forward" or
+        "reverse"), sharing everything else (made once per kind)."""
+        if derivatives == self.structure.derivatives:
             return self
-        if self._forward_only is None:
-            twin = copy.copy(self)
-            twin.structure = dataclasses.replace(self.structure, forward_only=True)
-            twin.step = make_step(twin.structure)
-            twin._probes = jax.jit(twin._probes_from_state)
-            twin.compiled_cache = {}
-            twin._advance = jit_with_options(twin._advance_one_output, several_fields=twin.several_fields)
-            self._forward_only = twin
-        return self._forward_only
+        if derivatives not in self._variants:
+            variant = copy.copy(self)
+            variant.structure = dataclasses.replace(self.structure, derivatives=derivatives)
+            variant.step = make_step(variant.structure)
+            variant._probes = jax.jit(variant._probes_from_state)
+            variant.compiled_cache = {}
+            variant._advance = jit_with_options(variant._advance_one_output, several_fields=variant.several_fields)
+            variant._variants = {}
+            self._variants[derivatives] = variant
+        return self._variants[derivatives]
 
     def outline_of(self, body, start, stop):
         """(outline, outline_centre) of a prescribed or rigid body whose region is convex (see

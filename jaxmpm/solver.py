@@ -109,8 +109,10 @@ class Structure:
     the grid; interfaces: the pairs of fields that meet (`contact.Interface`); point_spacing:
     h / ppc [m] (a rigid body's points are squares of this side); axisymmetric: x is the
     radius r, y the axial z, and the hoop terms exist (masses, volumes and forces per radian);
-    forward_only: the step is never differentiated in reverse mode, so it may use kernels that
-    have none (`jaxmpm.kernels.scatter`; `Simulation.forward_only`).
+    derivatives: which derivatives the step's programs take: "any" (plain JAX), "forward"
+    (never reverse mode: the transfers may use kernels without one, `jaxmpm.kernels.scatter`;
+    `Simulation.forward_only`) or "reverse" (never forward mode: kernels without one,
+    `jaxmpm.kernels.transposes`; `Simulation.reverse_only`).
     """
 
     layout: GridLayout
@@ -126,7 +128,7 @@ class Structure:
     interfaces: tuple[Interface, ...] = ()
     point_spacing: float = 0.0
     axisymmetric: bool = False
-    forward_only: bool = False
+    derivatives: str = "any"
 
     @property
     def has_kinematic_bodies(self):
@@ -193,7 +195,7 @@ def particles_to_grid(particles, stencil, offsets, field, structure):
     if structure.has_contact:
         channels += [per_point(mass) * stencil.gradients[0], per_point(mass) * stencil.gradients[1]]
     layout = structure.layout
-    nodes = scatter_to_nodes(layout, stencil.base, stack_last(channels), field, structure.fields, structure.forward_only)
+    nodes = scatter_to_nodes(layout, stencil.base, stack_last(channels), field, structure.fields, structure.derivatives)
     mass_gradient = None
     if structure.has_contact:   # the mirror image of a mass gradient flips only its normal component (as at a slip edge)
         mirror = dataclasses.replace(structure.boundaries, **{
@@ -232,19 +234,20 @@ def update_grid_velocity(nodes, dt, damping, constrain, floor):
     return velocity_old, velocity_new
 
 
-def grid_to_particles(particles, stencil, velocity_old, velocity_new, field, memory, dt, layout):
+def grid_to_particles(particles, stencil, velocity_old, velocity_new, field, memory, dt, layout, derivatives="any"):
     """Points take the new grid velocity of their field and move: x_p <- x_p + dt sum N_I v_I.
 
     Their velocity keeps a fraction `memory` (static) of their own FLIP update, the rest is
     the grid's: v_p <- sum N_I v_I + memory (v_p + sum N_I dv_I - sum N_I v_I). With
     transfer = "flip", memory = flip (per step); with "apic", memory = exp(-dt / tau) (see
     `transfer_memory`), and C_p is set with the velocity gradient in `make_step`.
+    derivatives: see `Structure`.
     """
     support = stencil.weights.shape[1]
     blend = memory > 0.0     # static: without memory only v_I is gathered
     nodal = jnp.concatenate([velocity_new, velocity_new - velocity_old], axis=-1) if blend else velocity_new
-    gathered = gather_from_nodes(layout, stencil.base, nodal, support, field)
-    at_points = sum_over_stencil(stencil.weights[..., None] * gathered)
+    gathered = gather_from_nodes(layout, stencil.base, nodal, support, field, derivatives)
+    at_points = sum_over_stencil(stencil.weights[..., None] * gathered, derivatives)
     grid_velocity = at_points[:, :2]
     velocity = grid_velocity
     if blend:
@@ -256,7 +259,7 @@ def remap_velocity(particles, stencil, field, structure, mass, constrain, floor)
     """MUSL: nodal velocity sum_p m_p v_p N_I / m_I of each field from the updated points."""
     layout = structure.layout
     momentum = scatter_to_nodes(layout, stencil.base, point_momentum(particles, stencil), field, structure.fields,
-                                structure.forward_only)
+                                structure.derivatives)
     momentum = checkpoint_name(fold_ghosts(momentum, layout, structure.boundaries, scalars=0), KEPT_GRID)
     return constrain(safe_velocity(momentum, mass, floor))
 
@@ -266,12 +269,12 @@ def velocity_gradient(stencil, velocity, field, structure, positions):
     out-of-plane rate; in axisymmetry L_tt = v_r / r = sum_I N_I v_rI / r_p (the hoop rate,
     Sulsky & Schreyer 1996)."""
     support = stencil.weights.shape[1]
-    nodal = gather_from_nodes(structure.layout, stencil.base, velocity, support, field)
-    in_plane = [sum_over_stencil(nodal[..., row] * slope) for row in range(2) for slope in stencil.gradients]   # L_xx, L_xy, L_yx, L_yy
+    nodal = gather_from_nodes(structure.layout, stencil.base, velocity, support, field, structure.derivatives)
+    in_plane = [sum_over_stencil(nodal[..., row] * slope, structure.derivatives) for row in range(2) for slope in stencil.gradients]   # L_xx, L_xy, L_yx, L_yy
     zero = jnp.zeros_like(in_plane[0])
     hoop = zero
     if structure.axisymmetric:
-        hoop = sum_over_stencil(stencil.weights * nodal[..., 0]) / point_radius(positions, structure)
+        hoop = sum_over_stencil(stencil.weights * nodal[..., 0], structure.derivatives) / point_radius(positions, structure)
     if keeps_velocity_gradient(structure):
         in_plane = [checkpoint_name(rate, KEPT_RATE) for rate in in_plane]
         hoop = checkpoint_name(hoop, KEPT_RATE) if structure.axisymmetric else hoop
@@ -433,7 +436,7 @@ def make_step(structure: Structure):
             velocity_new = constrain(velocity_new)
         start = particles.x
         particles = jax.named_call(grid_to_particles, name="grid_to_particles")(
-            particles, stencil, velocity_old, velocity_new, field, structure.memory, dt, layout
+            particles, stencil, velocity_old, velocity_new, field, structure.memory, dt, layout, structure.derivatives
         )
         state, reactions = move_kinematic_bodies(state.replace(particles=particles), start, structure, motions, impulses)
         if outline_pairs(structure):

@@ -513,6 +513,26 @@ def test_perzyna_newton_solve_matches_bisection_over_extremes(dtype):
     assert np.max(np.abs(solved - expected)) < (1e-12 if dtype == "float64" else 1e-5)
 
 
+def test_perzyna_fraction_at_its_root_skips_the_residual_but_keeps_its_derivatives():
+    # Undifferentiated, x = sigmoid(t) at the solved root (no logarithm: the residual and its
+    # slope are not evaluated); its first and second derivatives are those of the implicit
+    # function expression sigmoid(t - (R - R) / R') with t and R' held.
+    from jaxmpm.materials.drucker_prager import fraction_at_root, fraction_by_implicit_function, perzyna_root_of
+    arguments = tuple(jnp.float64(v) for v in (2.0e3, 3.0e6, 1.0e4, 0.0, 1.2, 5e-4, 2.0))
+    root = perzyna_root_of(*arguments)
+    plain = jax.make_jaxpr(fraction_at_root)(root, *arguments).jaxpr
+    assert not any(e.primitive.name in ("log", "log1p", "exp") for e in plain.eqns)
+
+    def of_overstress(function, overstress):
+        return function(root, overstress, *arguments[1:])
+
+    for derivative in (jax.grad, lambda f: jax.grad(jax.grad(f))):
+        np.testing.assert_allclose(derivative(functools.partial(of_overstress, fraction_at_root))(arguments[0]),
+                                   derivative(functools.partial(of_overstress, fraction_by_implicit_function))(arguments[0]),
+                                   rtol=1e-14)
+    assert float(jax.grad(functools.partial(of_overstress, fraction_at_root))(arguments[0])) > 0.0
+
+
 def test_perzyna_residual_and_slope_written_out_match_the_log_sigmoid_form():
     # The Newton steps use R(t) and dR/dt written with one exponential; they must be the
     # residual of perzyna_fraction, log sigmoid(t) - N log sigmoid(-t) + N log(m p(x)) + c,

@@ -144,7 +144,7 @@ def test_forward_only_simulation_gives_the_plain_jacobian():
     scene with two velocity fields."""
     sim = Simulation(scene_from_toml(CONTACT_BLOCKS))
     fast = sim.forward_only()
-    assert fast.structure.forward_only and not sim.structure.forward_only and sim.forward_only() is fast
+    assert fast.structure.derivatives == "forward" and sim.structure.derivatives == "any" and sim.forward_only() is fast
     params = sim.cast(sim.params)
 
     def residuals(simulation, z):
@@ -164,3 +164,39 @@ def test_forward_only_simulation_gives_the_plain_jacobian():
     np.testing.assert_allclose(r, plain_r, rtol=1e-12, atol=1e-15)
     scale = float(jnp.max(jnp.abs(plain_columns)))
     np.testing.assert_allclose(columns, plain_columns, rtol=1e-9, atol=1e-12 * scale)
+
+
+def test_reverse_only_simulation_gives_the_plain_gradient():
+    """`Simulation.reverse_only` (the transfers transposed into each other) against the plain
+    simulation: value and gradient of a probe misfit over every parameter, on a scene with
+    two velocity fields, a contact pair and 3 x 3 stencils."""
+    sim = Simulation(scene_from_toml(CONTACT_BLOCKS.replace('shape = "linear"', 'shape = "bspline2"')))
+    fast = sim.reverse_only()
+    assert fast.structure.derivatives == "reverse" and sim.reverse_only() is fast
+    params = sim.cast(sim.params)
+
+    def misfit(simulation):
+        def loss(p):
+            probes = simulation.probes(p)
+            return sum(jnp.sum(jnp.sin(10.0 * history)) for history in probes.values())
+        return jax.jit(jax.value_and_grad(loss))(params)
+
+    (value, gradient), (plain_value, plain_gradient) = misfit(fast), misfit(sim)
+    np.testing.assert_allclose(value, plain_value, rtol=1e-12)
+    for ours, theirs in zip(jax.tree_util.tree_leaves(gradient), jax.tree_util.tree_leaves(plain_gradient)):
+        assert float(jnp.max(jnp.abs(theirs))) > 0.0
+        np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(theirs))))
+
+
+@pytest.mark.parametrize("variant", ["forward_only", "reverse_only"])
+def test_a_variant_refuses_the_other_mode(variant):
+    sim = getattr(Simulation(scene_from_toml(BLOCK)), variant)()
+    loss = lambda young: jnp.sum(sim.probes(jaxmpm_with_young(sim, young))["top"])  # noqa: E731
+    other = (lambda: jax.grad(loss)(1.0e6)) if variant == "forward_only" else (lambda: jax.jvp(loss, (1.0e6,), (1.0,)))
+    with pytest.raises((TypeError, NotImplementedError)):
+        other()
+
+
+def jaxmpm_with_young(sim, young):
+    from jaxmpm import with_values
+    return with_values(sim.params, {"soil.young": young})

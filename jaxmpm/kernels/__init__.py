@@ -7,4 +7,6 @@ two agree to round-off in values and derivatives. Only public JAX APIs are used.
   inside every kernel that reads it.
 - `scatter.batched_add_to_nodes`: the particle-to-grid scatter with a hand-written `vmap`, for
   programs differentiated in forward mode only (`Simulation.forward_only`).
+- `transposes`: the transfers' reverse mode written as each other (scatter and gather, sum
+  and broadcast), for programs differentiated in reverse mode only (`Simulation.reverse_only`).
 """

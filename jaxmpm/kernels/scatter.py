@@ -5,7 +5,7 @@ an ensemble) puts the batch axis first in the node array, so each point's (s, s,
 becomes B pieces far apart in memory. Here a batch of B scatters onto F velocity fields is
 one scatter onto B F fields, whose rows are the batch's B N rows, each window contiguous.
 A `custom_vmap` function has no reverse mode, so a step uses this only when its program is
-never differentiated in reverse mode (`Structure.forward_only`).
+never differentiated in reverse mode (`Structure.derivatives = "forward"`).
 """
 
 import jax

@@ -2,7 +2,7 @@
 
 A material is a frozen dataclass holding what the scene file says (SI units, angles in
 degrees). What the solver compiles is its `law`: a small frozen object holding only the static
-options, whose `update` reads every physical value from `params`, so no parameter value is ever
+options (a `Law`), whose `update` reads every physical value from `params`, so no parameter value is ever
 part of the compiled structure. Each material class declares its scene-file keys in `keys` (`jaxmpm.keys.Key`: unit, default,
 range, meaning), from which the reader, the range checks and the scene reference come. The
 material's fields split in two:
@@ -20,6 +20,7 @@ compiled code. `Material` gives every material the law's `update`, `init_state` 
 `wave_speed` as its own methods, for `drive` and for direct use.
 """
 
+import abc
 import dataclasses
 
 import jax
@@ -49,6 +50,29 @@ def number_fields(cls):
 def material_parameters(material):
     """The dynamic parameter dict {name: value} of a material (the leaf of `sim.params`)."""
     return {name: getattr(material, name) for name in material.parameter_names}
+
+
+class Law(abc.ABC):
+    """What the solver compiles of a material: its static options only (a frozen dataclass),
+    every physical value read from `params`. Required: `init_state`, `update`, `wave_speed`.
+    Optional, with its default here: `kept_solves_per_point`."""
+
+    # Values per point that `update` solves an implicit equation for and names
+    # `rollout.KEPT_SOLVES` (a checkpointed step keeps them); counted in reverse mode's memory.
+    kept_solves_per_point = 0
+
+    @abc.abstractmethod
+    def init_state(self, count, dtype) -> dict:
+        """History variables of `count` points, {name: (count, ...) array}."""
+
+    @abc.abstractmethod
+    def update(self, params, stress, velocity_gradient, dt, state):
+        """One point: (stress (3, 3), state) at the end of the step from the stress and
+        state at its start and the velocity gradient L (3, 3)."""
+
+    @abc.abstractmethod
+    def wave_speed(self, params):
+        """The p-wave speed [m/s] that sets the stable time step."""
 
 
 class Material:

@@ -39,7 +39,7 @@ from jax.ad_checkpoint import checkpoint_name
 from jaxmpm import tensors
 from jaxmpm.errors import SceneError
 from jaxmpm.keys import Key, is_concrete
-from jaxmpm.materials.base import ELASTIC_KEYS, Material, check_keys
+from jaxmpm.materials.base import ELASTIC_KEYS, Law, Material, check_keys
 from jaxmpm.rollout import KEPT_SOLVES
 from jaxmpm.materials.linear_elastic import elastic_moduli, elastic_trial_voigt, p_wave_speed
 
@@ -73,15 +73,24 @@ def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate,
     return fraction_at_root(root, *arguments)
 
 
+@jax.custom_jvp
 def fraction_at_root(root, *arguments):
-    """x = sigmoid(t) at the root t of the Perzyna equation with these `arguments`, written
-    sigmoid(t - (R(t) - R(t)) / (dR/dt)) with the root and the slope held: the value is
-    sigmoid(t), and its derivative with respect to the arguments is -(dR/dtheta) / (dR/dt),
-    the implicit function theorem's."""
+    """x = sigmoid(t) at the root t of the Perzyna equation with these `arguments`; its
+    derivatives are those of the implicit function (`fraction_by_implicit_function`)."""
+    return jax.nn.sigmoid(root)
+
+
+def fraction_by_implicit_function(root, *arguments):
+    """sigmoid(t - (R(t) - R(t)) / (dR/dt)) with the root t and the slope held: the value
+    sigmoid(t), and the derivative with respect to the arguments -(dR/dtheta) / (dR/dt), the
+    implicit function theorem's."""
     residual = perzyna_equation(*arguments)["residual"]
     slope = jax.lax.stop_gradient(jax.grad(residual)(root))
     value = residual(root)
     return jax.nn.sigmoid(root - (value - jax.lax.stop_gradient(value)) / slope)
+
+
+fraction_at_root.defjvp(lambda primals, tangents: jax.jvp(fraction_by_implicit_function, primals, tangents))
 
 
 def perzyna_root_of(trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent):
@@ -242,7 +251,7 @@ class DruckerPrager(Material):
 
 
 @dataclasses.dataclass(frozen=True)
-class DruckerPragerLaw:
+class DruckerPragerLaw(Law):
     """The static side of `DruckerPrager`: the cone and whether the Perzyna solve exists.
 
     Changing either recompiles; every value (phi, E, gamma, N, ...) comes from `params`.

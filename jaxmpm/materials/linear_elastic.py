@@ -10,7 +10,7 @@ from typing import ClassVar
 import jax.numpy as jnp
 
 from jaxmpm import tensors
-from jaxmpm.materials.base import ELASTIC_KEYS, Material, check_keys
+from jaxmpm.materials.base import ELASTIC_KEYS, Law, Material, check_keys
 
 
 def bulk_and_shear_moduli(young, poisson):
@@ -68,10 +68,8 @@ def p_wave_speed(params):
 
 
 @dataclasses.dataclass(frozen=True)
-class ElasticLaw:
+class ElasticLaw(Law):
     """The static side of `LinearElastic`: no options, so one compiled update for every value."""
-
-    kept_solves_per_point = 0     # no implicit equation solved per point
 
     def init_state(self, count, dtype):
         """History variables: only the accumulated plastic strain (always zero here)."""
