@@ -12,7 +12,7 @@ runs over the whole probe rollout (`Simulation.probes`):
   default optimizer) computes them (`inverse.levenberg_marquardt.residuals_and_jacobian`);
 - gradient: `jax.grad` of the sum of squared residuals, as L-BFGS and Adam compute it,
   compiled as jaxmpm compiles its reverse-mode work.
-All three get the XLA options a calibration gives them (`jaxmpm.xla_options`).
+All three get the XLA options a calibration gives them (`jaxmpm.kernels.xla_options`).
 Each is timed best of `--repeats` calls after its first; the first call's excess over the best
 is its compile time. Each scene runs in a fresh process, float64 (JAX's 64-bit mode on), the
 persistent compilation cache off.
@@ -51,7 +51,7 @@ def measure(path: Path, repeats: int) -> dict:
     import jaxmpm
     from inverse.levenberg_marquardt import residuals_and_jacobian
     from jaxmpm.tracing import collector_paused
-    from jaxmpm.xla_options import jit_reverse_mode, jit_with_options
+    from jaxmpm.kernels.xla_options import jit_reverse_mode, jit_with_options
 
     scene = jaxmpm.load_scene(path)
     sim = jaxmpm.Simulation(scene)

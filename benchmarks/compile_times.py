@@ -8,7 +8,7 @@ What a user waits for before the first step of a calibration runs: for each exam
 the program `Simulation.probes` builds (the whole rollout, checkpointed as jaxmpm chooses for
 the scene), and the gradient of a misfit of its probe histories with respect to every
 material parameter, both with the XLA options jaxmpm compiles them with
-(`jaxmpm.xla_options`). Scenes without probes get a probe of the mean displacement of their
+(`jaxmpm.kernels.xla_options`). Scenes without probes get a probe of the mean displacement of their
 first body. Trace (Python tracing and lowering to XLA, with Python's garbage collector paused as
 jaxmpm pauses it for its own programs: `jaxmpm.tracing`) and XLA compilation are timed apart.
 Each scene runs in a fresh process (nothing cached in memory; JAX's persistent compilation
@@ -54,7 +54,7 @@ def measure(path: Path) -> dict:
 
     import jaxmpm
     from jaxmpm.tracing import collector_paused
-    from jaxmpm.xla_options import jit_reverse_mode, jit_with_options
+    from jaxmpm.kernels.xla_options import jit_reverse_mode, jit_with_options
 
     scene = jaxmpm.load_scene(path)
     if not scene.probes:

@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from throughput import block_scene, write_section  # noqa: E402
 
 import jaxmpm  # noqa: E402
-from jaxmpm.xla_options import compiler_options  # noqa: E402
+from jaxmpm.kernels.xla_options import compiler_options  # noqa: E402
 
 BEGIN, END = "<!-- gradient_memory:begin -->", "<!-- gradient_memory:end -->"
 LARGE_BEGIN, LARGE_END = "<!-- gradient_memory_large:begin -->", "<!-- gradient_memory_large:end -->"

@@ -75,7 +75,7 @@ def main():
     import jax.numpy as jnp
 
     import jaxmpm
-    from jaxmpm.xla_options import NO_YNNPACK
+    from jaxmpm.kernels.xla_options import NO_YNNPACK
     from throughput import SIZES, block_scene
 
     options = NO_YNNPACK if args.jit_options == "noynn" else {}

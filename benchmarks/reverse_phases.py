@@ -37,7 +37,7 @@ def main():
     import jaxmpm
     from jaxmpm import solver
     from jaxmpm.grid import apply_edge_conditions, boundary_mask
-    from jaxmpm.xla_options import NO_YNNPACK
+    from jaxmpm.kernels.xla_options import NO_YNNPACK
     from throughput import SIZES, block_scene
 
     options = NO_YNNPACK if args.noynn else {}

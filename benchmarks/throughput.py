@@ -184,7 +184,7 @@ def run_case(points: int, dtype: str, material: str, shape: str, transfer: str, 
         return jnp.sum(probes["top"][:, 1]) + jnp.sum(probes["centre_of_mass"][:, 1])
 
     young = jnp.asarray(sim.params["materials"]["block"]["young"], sim.dtype)
-    from jaxmpm.xla_options import jit_reverse_mode
+    from jaxmpm.kernels.xla_options import jit_reverse_mode
 
     # the gradient compiled as jaxmpm compiles its own reverse-mode work (YNNPACK fusions off)
     forward, gradient = jax.jit(loss), jit_reverse_mode(jax.grad(loss))

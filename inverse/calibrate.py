@@ -55,7 +55,7 @@ from jaxmpm.parameters import resolve
 from jaxmpm.files import atomic_path
 from jaxmpm.simulation import STEP_SLACK, describe_failure
 from jaxmpm.tracing import collector_paused
-from jaxmpm.xla_options import jit_reverse_mode, jit_with_options
+from jaxmpm.kernels.xla_options import jit_reverse_mode, jit_with_options
 
 OPTIMIZERS = ("lm", "lbfgs", "adam")
 LM_DAMPING_LIMIT = 1e16     # Levenberg–Marquardt damping beyond this: no step lowers the loss

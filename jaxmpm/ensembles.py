@@ -20,7 +20,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxmpm.errors import SceneError
 from jaxmpm.tracing import collector_paused
-from jaxmpm.xla_options import jit_with_options
+from jaxmpm.kernels.xla_options import jit_with_options
 
 
 def stack(param_sets) -> dict:

@@ -43,7 +43,7 @@ from jaxmpm.solver import (
 )
 from jaxmpm.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
 from jaxmpm.tracing import collector_paused
-from jaxmpm.xla_options import compiler_options, jit_with_options
+from jaxmpm.kernels.xla_options import compiler_options, jit_with_options
 
 
 STEP_SLACK = 1e-6   # relative round-off allowed between the scene's dt and the stable limit
@@ -225,7 +225,7 @@ class Simulation:
         return self.structure.fields > 1
 
     def compiler_options(self, reverse_mode: bool = False) -> dict:
-        """The XLA options jaxmpm compiles this scene's programs with (`jaxmpm.xla_options`),
+        """The XLA options jaxmpm compiles this scene's programs with (`jaxmpm.kernels.xla_options`),
         for your own jits: `jax.jit(jax.grad(loss), compiler_options=sim.compiler_options(True))`."""
         return compiler_options(reverse_mode=reverse_mode, several_fields=self.several_fields)
 

@@ -400,11 +400,12 @@ def transfer_memory(transfer, flip, relaxation, dt, crossing_time):
 def make_step(structure: Structure):
     """The pure step function of a scene: step(params, state) -> (state, diagnostics)."""
     layout, dt = structure.layout, structure.dt
-    field = None
+    fields = None
     if structure.fields > 1:   # each point's velocity field, a compile-time constant
-        field = jnp.asarray(np.concatenate([np.full(b.stop - b.start, b.field, np.int32) for b in structure.bodies]))
+        fields = np.concatenate([np.full(b.stop - b.start, b.field, np.int32) for b in structure.bodies])
 
     def step(params, state):
+        field = None if fields is None else jnp.asarray(fields)
         particles = state.particles
         mask = boundary_mask(layout, structure.boundaries, particles.x.dtype)
 

@@ -459,10 +459,10 @@ def test_fields_and_parameters_follow_the_scene():
 
 
 def test_scenes_with_several_fields_compile_with_their_options_and_the_same_numbers():
-    # jaxmpm.xla_options: programs of scenes with several velocity fields are compiled with
+    # jaxmpm.kernels.xla_options: programs of scenes with several velocity fields are compiled with
     # XLA's region-analysis copy insertion (docs/benchmarks.md). It must change no number
     # (it removes copies only). One-field scenes keep XLA's defaults.
-    from jaxmpm.xla_options import accepted, compiler_options
+    from jaxmpm.kernels.xla_options import accepted, compiler_options
 
     single = Simulation(dataclasses.replace(sliding_block(30.0, 0.3), contacts=(), probes=(),
                                             bodies=(sliding_block(30.0, 0.3).bodies[1],)))

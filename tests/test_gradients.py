@@ -306,11 +306,11 @@ def test_recompute_grid_keeps_the_velocity_gradients_of_3x3_stencils_and_counts_
 
 
 def test_reverse_mode_jit_drops_library_reductions_and_keeps_the_gradient():
-    # jaxmpm.xla_options: calibration gradients are compiled without XLA:CPU's YNNPACK
+    # jaxmpm.kernels.xla_options: calibration gradients are compiled without XLA:CPU's YNNPACK
     # reduction kernels (15-17 % faster backward passes, docs/benchmarks.md); the numbers must
     # not change beyond round-off, and the option must really reach the compiled program. XLA
     # uses those kernels only for large enough arrays, hence a block of 1,600 points.
-    from jaxmpm.xla_options import compiler_options, jit_reverse_mode
+    from jaxmpm.kernels.xla_options import compiler_options, jit_reverse_mode
 
     finer = {"cell = 0.05": "cell = 0.01", "duration = 0.01": "duration = 0.001", "output_every = 0.005": "output_every = 0.001"}
     text = BLOCK
