@@ -62,16 +62,18 @@ def measure(path: Path) -> dict:
     sim = jaxmpm.Simulation(scene)
     params = sim.cast(sim.params)
 
-    def misfit(materials):
-        probes = sim.probes({**params, "materials": materials})
-        return sum(jnp.sum(history * history) for history in probes.values())
+    def misfit_of(simulation):
+        def misfit(materials):
+            probes = simulation.probes({**params, "materials": materials})
+            return sum(jnp.sum(history * history) for history in probes.values())
+        return misfit
 
     materials = params["materials"]
     chosen = sim.checkpointing_for(sim.initial_state(params))
     result = {"scene": path.name, "points": sim.point_count, "steps": sim.steps, "dtype": str(sim.dtype),
               "segment": chosen.segment_length(sim.steps), "kept": chosen.step}
-    programs = (("forward", jit_with_options(misfit, several_fields=sim.several_fields)),
-                ("gradient", jit_reverse_mode(jax.grad(misfit), sim.several_fields)))
+    programs = (("forward", jit_with_options(misfit_of(sim), several_fields=sim.several_fields)),
+                ("gradient", jit_reverse_mode(jax.grad(misfit_of(sim.reverse_only())), sim.several_fields)))
     for name, program in programs:
         with collector_paused():        # as a calibration traces its programs
             lowered, trace_s = timed(lambda: program.trace(materials).lower())

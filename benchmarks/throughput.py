@@ -179,15 +179,18 @@ def run_case(points: int, dtype: str, material: str, shape: str, transfer: str, 
     # (checkpointed, default segments), against the same scalar computed forward only.
     sim = Simulation(block_scene(cells, dtype, GRADIENT_STEPS, material, shape, transfer))
 
-    def loss(young):
-        probes = sim.probes(with_values(sim.params, {"block.young": young}))
-        return jnp.sum(probes["top"][:, 1]) + jnp.sum(probes["centre_of_mass"][:, 1])
+    def loss_of(simulation):
+        def loss(young):
+            probes = simulation.probes(with_values(sim.params, {"block.young": young}))
+            return jnp.sum(probes["top"][:, 1]) + jnp.sum(probes["centre_of_mass"][:, 1])
+        return loss
 
     young = jnp.asarray(sim.params["materials"]["block"]["young"], sim.dtype)
     from jaxmpm.kernels.xla_options import jit_reverse_mode
 
-    # the gradient compiled as jaxmpm compiles its own reverse-mode work (YNNPACK fusions off)
-    forward, gradient = jax.jit(loss), jit_reverse_mode(jax.grad(loss))
+    # the gradient compiled as jaxmpm compiles its own reverse-mode work: the transfers'
+    # transposes (`Simulation.reverse_only`), YNNPACK fusions off
+    forward, gradient = jax.jit(loss_of(sim)), jit_reverse_mode(jax.grad(loss_of(sim.reverse_only())))
     loss_first = timed(forward, young)
     grad_first = timed(gradient, young)
     # loss and gradient called in turn, so that a change of the VM's speed during the case
