@@ -53,7 +53,8 @@ from jaxmpm.ensembles import batch_mesh, is_spread, spread_over_devices
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.parameters import resolve
 from jaxmpm.files import atomic_path
-from jaxmpm.simulation import STEP_SLACK, describe_failure
+from jaxmpm.simulation import describe_failure
+from jaxmpm.time_step import exceeds
 from jaxmpm.tracing import collector_paused
 from jaxmpm.kernels.xla_options import jit_reverse_mode, jit_with_options
 
@@ -82,7 +83,7 @@ def check_stable_over_bounds(experiment, space: ParameterSpace, index: int):
             values[key] = bound
         extreme = {**base, "materials": {**materials, material_name: values}}
         limit = sim.material_time_steps(extreme).get(material_name, float("inf"))
-        if sim.dt > limit * (1.0 + STEP_SLACK):
+        if exceeds(sim.dt, limit):
             raise SceneError(
                 f"fit bounds allow material {material_name!r} values that need a time step below "
                 f"{limit:.4g} s, but the scene's is {sim.dt:.4g} s: narrow the bounds or lower scene.cfl."
@@ -528,7 +529,7 @@ def _finish(experiments, groups, space, problem, data, bases, run, state, start_
     for index, (experiment, base) in enumerate(zip(experiments, experiment_bases(groups, bases, len(experiments)))):
         sim = experiment.sim
         params = space.insert(jnp.asarray(values, dtype), base, experiment=index)
-        probes, final_state = sim._probes(params, sim.initial_state(params))
+        probes, final_state = sim.probes_and_final_state(params)
         if int(final_state.error_step) >= 0:
             warnings_found.append(f"best-fit run of {experiment.name}: " + describe_failure(sim, final_state))
         runs.append(ExperimentFit(experiment.name, experiment.observations, np.asarray(sim.time),
@@ -589,7 +590,7 @@ def linear_shape_warning(experiment, space, start_values, index) -> str:
         return ""
     params = space.insert(jnp.asarray(start_values, sim.dtype), base_parameters(experiment), experiment=index)
     initial = sim.initial_state(params)
-    _, final = sim._probes(params, initial)
+    _, final = sim.probes_and_final_state(params, initial)
     crossed = cells_crossed(sim, final, initial)
     if crossed == 0:
         return ""

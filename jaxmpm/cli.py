@@ -2,7 +2,7 @@
 
     jaxmpm run SCENE.toml [-o OUT.h5] [--set sand.friction_angle=32 ...] [--resume] [--quiet]
     jaxmpm check SCENE.toml [--set ...]
-    jaxmpm calibrate CONFIG.toml [-o FIT.h5] [--resume] [--quiet]
+    jaxmpm calibrate CONFIG.toml [-o FIT.h5] [--resume] [--quiet]   (added by inverse.command)
     jaxmpm plot OUT.h5 [-o OUT.png | .gif | .mp4] [--field q] [--snapshot -1] [--probes] [--mirror]
     jaxmpm export OUT.h5 [-o OUT.pvd] [--revolve N]
 
@@ -51,13 +51,6 @@ def build_parser():
     check.add_argument("scene", help="scene file (TOML)")
     check.add_argument("--set", dest="assignments", action="append", default=[], metavar="KEY=VALUE",
                        help="override a scene value, as for run")
-    calibrate = commands.add_parser("calibrate", help="fit scene parameters to observed probe histories")
-    calibrate.add_argument("config", help="calibration file (TOML; keys: docs/scene_reference.md)")
-    calibrate.add_argument("-o", "--output", help="fit HDF5 file (default: CONFIG name with .h5)")
-    calibrate.add_argument("--resume", action="store_true", help="continue from OUTPUT.checkpoint.npz")
-    calibrate.add_argument("--keep-checkpoint", action="store_true",
-                           help="keep OUTPUT.checkpoint.npz after the fit is written (default: remove it)")
-    calibrate.add_argument("--quiet", action="store_true", help="no progress bar")
     plot = commands.add_parser("plot", help="draw a run: points coloured by a field, or probe histories")
     plot.add_argument("result", help="output HDF5 file of `jaxmpm run`")
     plot.add_argument("-o", "--output", help="PNG, GIF or MP4 file (default: RESULT name with .png)")
@@ -71,7 +64,22 @@ def build_parser():
     export.add_argument("-o", "--output", help="PVD file (default: RESULT name with .pvd)")
     export.add_argument("--revolve", type=int, metavar="N",
                         help="axisymmetric runs: write each point at N angles about the axis (a 3-D point cloud)")
+    for name, command in plugged_commands().items():
+        command.add_arguments(commands.add_parser(name, help=command.help))
     return parser
+
+
+COMMAND_GROUP = "jaxmpm.commands"
+
+
+def plugged_commands() -> dict:
+    """{name: command} of the packages that add commands to `jaxmpm` (the entry points of group
+    COMMAND_GROUP, e.g. `calibrate` from `inverse.command`): each command has `help`,
+    `add_arguments(parser)` and `run(arguments) -> exit status`. jaxmpm imports none of them
+    by name."""
+    from importlib.metadata import entry_points
+
+    return {point.name: point.load() for point in sorted(entry_points(group=COMMAND_GROUP), key=lambda p: p.name)}
 
 
 def run_command(arguments):
@@ -158,44 +166,6 @@ def output_path(argument, source, suffix=".h5"):
     return output
 
 
-def calibrate_command(arguments):
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-    import jaxmpm
-    import inverse
-    from inverse.config import load_calibration
-
-    jaxmpm.use_compilation_cache()
-
-    config = load_calibration(arguments.config)
-    output = output_path(arguments.output, arguments.config)
-    checkpoint = output.with_name(output.name + ".checkpoint.npz")
-    experiments = config.simulations()
-    options = dict(config.options)
-    name = options.pop("name")
-    try:
-        fit = inverse.calibrate(
-            experiments, fit=config.fit, optimizer=name, checkpoint=checkpoint,
-            resume=arguments.resume, progress=not arguments.quiet, **options,
-        )
-    except KeyboardInterrupt:
-        print(f"jaxmpm: interrupted; resume with --resume (checkpoint {checkpoint})", file=sys.stderr)
-        return 130
-    except jaxmpm.SimulationError as error:
-        kept = f" (progress kept in {checkpoint}; resume with --resume)" if checkpoint.exists() else ""
-        print(f"jaxmpm: {error}{kept}", file=sys.stderr)
-        return 1
-    fit.save(output)
-    print(fit.summary())
-    print(f"wrote {output}")
-    if arguments.keep_checkpoint:
-        print(f"kept the checkpoint {checkpoint}")
-    else:
-        checkpoint.unlink(missing_ok=True)      # the fit is written: the checkpoint has served
-    return 0
-
-
 def read_result(path):
     """The Result in `path`, or one SceneError line if it is not a jaxmpm output file."""
     import h5py
@@ -253,13 +223,14 @@ def export_command(arguments):
     return 0
 
 
-COMMANDS = {"run": run_command, "check": check_command, "calibrate": calibrate_command, "plot": plot_command, "export": export_command}
+COMMANDS = {"run": run_command, "check": check_command, "plot": plot_command, "export": export_command}
 
 
 def main(argv=None):
     arguments = build_parser().parse_args(argv)
+    command = COMMANDS.get(arguments.command) or plugged_commands()[arguments.command].run
     try:
-        return COMMANDS[arguments.command](arguments)
+        return command(arguments)
     except SceneError as error:
         print(f"jaxmpm: error: {one_line(str(error))}", file=sys.stderr)
         return USER_ERROR

@@ -36,17 +36,15 @@ from jaxmpm.probes import make_probes
 from jaxmpm.output import RunFile, deferred_interrupts
 from jaxmpm.results import FileSnapshots, Result
 from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps, state_bytes
-from jaxmpm.scene import Scene, body_speed
+from jaxmpm.scene import Scene
 from jaxmpm.seeding import padded, seed_bodies
 from jaxmpm.solver import (
     BodyBlock, Structure, kept_grid_bytes, kept_solve_bytes, make_step, transfer_memory,
 )
 from jaxmpm.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
+from jaxmpm.time_step import exceeds, material_limits, time_stepping
 from jaxmpm.tracing import collector_paused
 from jaxmpm.kernels.xla_options import compiler_options, jit_with_options
-
-
-STEP_SLACK = 1e-6   # relative round-off allowed between the scene's dt and the stable limit
 
 
 def check_dtype(scene: Scene):
@@ -57,23 +55,6 @@ def check_dtype(scene: Scene):
             "jax.config.update('jax_enable_x64', True) at the start of the program "
             "(the jaxmpm command does), or set numerics.dtype = 'float32'."
         )
-
-
-def time_stepping(scene: Scene):
-    """(dt, steps per output, outputs): dt <= cfl * stable limit (or <= scene.dt), adjusted
-    down so that a whole number of steps fills each output interval; the duration is rounded
-    to a whole number of output intervals."""
-    largest = scene.dt if scene.dt is not None else scene.cfl * scene.stable_dt
-    if not math.isfinite(largest):
-        raise SceneError(
-            "scene.cfl cannot set the time step: no body is free and none moves. Give scene.dt instead."
-        )
-    interval = scene.output_interval
-    per_output = max(1, math.ceil(interval / largest - 1e-9))
-    outputs = max(1, round(scene.duration / interval))
-    if abs(outputs * interval - scene.duration) > 1e-6 * scene.duration:
-        outputs = math.ceil(scene.duration / interval)
-    return interval / per_output, per_output, outputs
 
 
 def slowest_crossing_time(scene: Scene) -> float:
@@ -245,21 +226,16 @@ class Simulation:
             lambda leaf: jax.device_put(leaf, points if jnp.ndim(leaf) and jnp.shape(leaf)[0] == count else whole), state)
 
     def material_time_steps(self, params, initial: State | None = None) -> dict:
-        """{material: h / (c_p + max speed of its free bodies)} for these parameter values [s];
-        the speed is each body's scene velocity, or the largest |v| of its points in `initial`.
-        Prescribed and rigid bodies do not count: their stiffness never sets the step."""
-        limits = {}
-        for block, body in zip(self.structure.bodies, self.scene.bodies):
-            if block.kinematics != "free":
-                continue
-            motion = None
-            if initial is not None:
+        """{material: h / (c_p + max speed of its free bodies)} for these parameter values [s]
+        (`time_step.material_limits`); the speed is each body's scene velocity, or the largest
+        |v| of its points in `initial`."""
+        speeds = None
+        if initial is not None:
+            speeds = {}
+            for block in self.structure.bodies:
                 velocity = np.asarray(initial.particles.v[block.points])
-                motion = float(np.max(np.hypot(velocity[:, 0], velocity[:, 1])))
-            speed = body_speed(self.scene, body, params["materials"][body.material], motion)
-            limit = self.scene.grid.cell / speed
-            limits[body.material] = min(limit, limits.get(body.material, limit))
-        return limits
+                speeds[block.name] = float(np.max(np.hypot(velocity[:, 0], velocity[:, 1])))
+        return material_limits(self.scene, params["materials"], speeds)
 
     def stable_time_step(self, params, initial: State | None = None) -> float:
         """h / max over free bodies of (c_p + |v|) for these parameter values (and initial
@@ -270,13 +246,13 @@ class Simulation:
         """SceneError if concrete parameter values (or initial velocities) make the fixed time
         step unstable. Traced values (inside jit, grad, vmap) cannot be checked here: there an
         unstable step shows up as a non-finite state (error bits, SimulationError in `run`). A
-        relative slack of STEP_SLACK absorbs round-off (float32 parameters, the rounding of dt
+        relative slack (`time_step.STEP_SLACK`) absorbs round-off (float32 parameters, the rounding of dt
         to whole steps)."""
         leaves = jax.tree_util.tree_leaves(params) + ([] if initial is None else [initial.particles.v])
         if not all(is_concrete(leaf) for leaf in leaves):
             return
         for material, limit in self.material_time_steps(params, initial).items():
-            if self.dt > limit * (1.0 + STEP_SLACK):
+            if exceeds(self.dt, limit):
                 own = self.params["materials"][material]
                 changed = {
                     key: float(value) for key, value in params["materials"][material].items()
@@ -293,7 +269,7 @@ class Simulation:
                 )
         for body, values in params.get("bodies", {}).items():
             speed = float(np.max(np.hypot(*np.reshape(np.asarray(values["velocity"]), (-1, 2)).T)))
-            if speed * self.dt > self.scene.grid.cell * (1.0 + STEP_SLACK):
+            if exceeds(speed * self.dt, self.scene.grid.cell):
                 raise SceneError(
                     f"params['bodies'][{body!r}]['velocity'] reaches {speed:.4g} m/s, which moves the body more than "
                     f"a cell ({self.scene.grid.cell:g} m) in the fixed time step {self.dt:.4g} s: build the "
@@ -423,11 +399,15 @@ class Simulation:
 
     def final_state(self, params=None, initial: State | None = None) -> State:
         """The state after the last step (differentiable, like `probes`)."""
+        return self.probes_and_final_state(params, initial)[1]
+
+    def probes_and_final_state(self, params=None, initial: State | None = None):
+        """(probe histories, final state) of one rollout: `probes` and `final_state` together."""
         params = self.cast(self.params if params is None else params)
         self.check_time_step(params, initial)
         initial = self.initial_state(params) if initial is None else initial
         with collector_paused():
-            return self._probes(params, initial)[1]
+            return self._probes(params, initial)
 
     # ------------------------------------------------------------------ forward runs
 

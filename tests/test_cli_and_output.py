@@ -127,3 +127,14 @@ def test_the_compilation_cache_directory_follows_the_environment(tmp_path):
     assert cache_directory({"JAXMPM_CACHE_DIR": str(tmp_path / "c")}) == tmp_path / "c"
     assert cache_directory({"XDG_CACHE_HOME": str(tmp_path / "x")}) == tmp_path / "x" / "jaxmpm" / "xla"
     assert cache_directory({"HOME": str(tmp_path)}) == tmp_path / ".cache" / "jaxmpm" / "xla"
+
+
+def test_the_library_imports_nothing_of_inverse_and_the_command_still_calibrates():
+    # inverse adds `calibrate` to the command through the entry point group jaxmpm.commands:
+    # importing jaxmpm (and its command) loads no module of inverse, and the parser offers it.
+    code = ("import sys, jaxmpm, jaxmpm.cli, jaxmpm.scene, jaxmpm.plotting, jaxmpm.export; "
+            "assert not [m for m in sys.modules if m == 'inverse' or m.startswith('inverse.')], 'inverse imported'; "
+            "parser = jaxmpm.cli.build_parser(); print(parser.parse_args(['calibrate', 'x.toml']).config)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "x.toml"

@@ -11,12 +11,12 @@ from jaxmpm.scene.files import load_scene, read_material, scene_from_dict, scene
 from jaxmpm.scene.model import (
     BOUNDARY_KINDS, DEFAULT_PRESET, GEOMETRIES, KINEMATICS, NAME, NUMERICS_CHOICES, PRESETS, PROBE_KINDS,
     SNAPSHOT_FIELDS, Body, Boundaries, Contact, Geostatic, Grid, Kinematics, Numerics, Polygon, Probe, Rectangle,
-    Scene, body_speed,
+    Scene,
 )
 
 __all__ = [
     "BOUNDARY_KINDS", "DEFAULT_PRESET", "GEOMETRIES", "KINEMATICS", "NAME", "NUMERICS_CHOICES", "PRESETS",
     "PROBE_KINDS", "SNAPSHOT_FIELDS", "Body", "Boundaries", "Contact", "Geostatic", "Grid", "Kinematics",
-    "Numerics", "Polygon", "Probe", "Rectangle", "Scene", "body_speed", "load_scene", "read_material",
+    "Numerics", "Polygon", "Probe", "Rectangle", "Scene", "load_scene", "read_material",
     "scene_from_dict", "scene_to_dict",
 ]

@@ -13,6 +13,7 @@ from jaxmpm.errors import SceneError
 from jaxmpm.keys import check_range, check_value
 from jaxmpm.scene.model import KINEMATICS, NAME, Grid, Kinematics, Rectangle, Scene
 from jaxmpm.scene.schema import SCENE_FILE
+from jaxmpm.time_step import check_scene_step
 
 
 def check_fields(obj, section, path, variant=None):
@@ -44,11 +45,7 @@ def check_scene(scene: Scene):
     check_bodies(scene)
     check_contacts(scene)
     check_probes(scene)
-    if scene.dt is not None and scene.dt > scene.stable_dt:
-        raise SceneError(
-            f"scene.dt = {scene.dt:g} s is above the stable limit {scene.stable_dt:.4g} s "
-            "(cell / max wave speed): use a smaller dt, or give cfl instead."
-        )
+    check_scene_step(scene)
 
 
 def check_grid(grid: Grid):

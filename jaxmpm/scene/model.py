@@ -15,7 +15,7 @@ import re
 from typing import Any
 
 from jaxmpm.errors import SceneError
-from jaxmpm.materials.base import material_parameters
+from jaxmpm.time_step import body_speed, stable_limit
 
 BOUNDARY_KINDS = ("fixed", "slip", "free")
 NUMERICS_CHOICES = {"shape": ("linear", "gimp", "bspline2"), "transfer": ("flip", "apic"),
@@ -284,29 +284,15 @@ class Scene:
     def max_wave_speed(self) -> float:
         """The CFL denominator [m/s]: max over free bodies of c_p + |v0|, and over prescribed
         and rigid bodies of their speed alone (their stiffness never sets the step)."""
-        speeds = [body_speed(self, body) for body in self.bodies]
-        return max(speeds)
+        return max(body_speed(self, body) for body in self.bodies)
 
     @property
     def stable_dt(self) -> float:
-        """The stability limit h / max(c_p + |v|) [s]; the scene runs at cfl times this."""
-        speed = self.max_wave_speed
-        return self.grid.cell / speed if speed > 0.0 else math.inf
+        """The stability limit h / max(c_p + |v|) [s]; the scene runs at cfl times this
+        (`jaxmpm.time_step`)."""
+        return stable_limit(self)
 
     @property
     def output_interval(self) -> float:
         return self.output_every if self.output_every is not None else self.duration / 100.0
 
-
-def body_speed(scene: Scene, body: Body, params=None, initial_speed=None) -> float:
-    """The speed that limits the time step for one body [m/s]: c_p (from `params` of its
-    material, default the scene's values) + its initial speed for a free body; its initial or
-    prescribed speed alone for a rigid or prescribed one."""
-    motion = math.hypot(*body.velocity) if initial_speed is None else initial_speed
-    if body.kinematics.type == "prescribed":
-        return body.kinematics.top_speed
-    if body.kinematics.type == "rigid":
-        return motion
-    material = scene.material_of(body)
-    values = material_parameters(material) if params is None else params
-    return float(material.wave_speed(values)) + motion
