@@ -174,6 +174,9 @@ def load_calibration(path) -> CalibrationConfig:
         raise SceneError(f"{path} is not valid TOML: {error}.") from None
     except UnicodeDecodeError:
         raise SceneError(f"{path} is not UTF-8 text.") from None
+    if "grid" in data and "fit" not in data:
+        raise SceneError(f"{str(path)!r} is a scene file (it has [grid]), not a calibration file: give it to "
+                         "`jaxmpm run`, or name it as the scene of a calibration file (scene = \"...\").")
     values = read_section(CALIBRATION_FILE, data, "")
     if values["experiments"] is not None:
         for key in ("scene", "observations", "noise", "window"):

@@ -203,6 +203,19 @@ def solve_rigid_motions(structure, motions, grid, frictions, positions):
     return motions
 
 
+def impose_body_motions(params, state, structure, grid, frictions, time_new):
+    """(nodal velocities with each prescribed and rigid body's field moving as the body,
+    {body: its motion over the step}) from the free fields' trial `grid`: prescribed bodies on
+    their path, rigid bodies solved with their interfaces' impulses (`solve_rigid_motions`).
+    A scene without such bodies: the trial velocities and {}."""
+    if not structure.has_kinematic_bodies:
+        return grid.velocity, {}
+    positions = node_positions(structure.layout, state.particles.x.dtype)
+    motions = free_motions(params, state, structure, time_new)
+    motions = jax.named_call(solve_rigid_motions, name="rigid_bodies")(structure, motions, grid, frictions, positions)
+    return impose_kinematic_fields(grid.velocity, structure, motions, positions), motions
+
+
 def received_impulses(structure, impulses):
     """{field: (nx, ny, 2) total impulse the field received from all interfaces}."""
     received = {}

@@ -36,8 +36,19 @@ def parse_assignment(text):
     return key.strip(), value
 
 
+def installed_version() -> str:
+    """The installed package's version (pyproject.toml), or "unknown" outside an install."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("jaxmpm")
+    except PackageNotFoundError:
+        return "unknown"
+
+
 def build_parser():
     parser = argparse.ArgumentParser(prog="jaxmpm", description="Differentiable MPM for soil mechanics.")
+    parser.add_argument("--version", action="version", version=f"jaxmpm {installed_version()}")
     commands = parser.add_subparsers(dest="command", required=True)
     run = commands.add_parser("run", help="run a scene and write its HDF5 output")
     run.add_argument("scene", help="scene file (TOML)")
@@ -189,6 +200,8 @@ def plot_command(arguments):
     from jaxmpm import plotting
 
     output = output_path(arguments.output, arguments.result, ".png")
+    allowed = (".png",) if arguments.probes else plotting.FORMATS
+    plotting.check_output(output, allowed)        # before the file is read: name every type -o takes
     animation = output.suffix.lower() in (".gif", ".mp4")
     if arguments.probes and arguments.field is not None:
         raise SceneError(f"--field {arguments.field} colours snapshots; it does not apply to --probes.")

@@ -27,6 +27,7 @@ from jaxmpm.errors import SceneError
 from jaxmpm.materials import material_parameters
 
 NAMESPACES = ("materials", "contacts", "bodies")
+OWNER_KINDS = {"materials": "material", "contacts": "contact pair", "bodies": "body"}
 
 
 def pair_name(pair) -> str:
@@ -46,14 +47,22 @@ def scene_parameters(scene) -> dict:
     return params
 
 
-def qualify(name: str, owners: dict) -> str:
+def qualify(name: str, owners: dict, exists=None) -> str:
     """The full dotted name "namespace.owner.key" of `name`, given the owners of each namespace
     ({namespace: names}). A name that starts with a namespace is kept; otherwise its first part
-    must be the owner in exactly one namespace. SceneError (naming `name`) if it is not."""
+    must be the owner in exactly one namespace, or, where several namespaces have an owner of
+    that name (a body and its material may share one), in exactly one where the full name
+    exists (`exists(full name) -> bool`). SceneError (naming `name`) if it is not."""
     head, _, rest = name.partition(".")
     if head in NAMESPACES:
         return name
     holders = [namespace for namespace in NAMESPACES if head in owners.get(namespace, ())]
+    if len(holders) > 1 and exists is not None:
+        named = [namespace for namespace in holders if exists(f"{namespace}.{name}")]
+        if not named:
+            owners_named = " or ".join(f"{OWNER_KINDS[namespace]} {head!r}" for namespace in holders)
+            raise SceneError(f"{name!r}: {rest!r} is not a key of the {owners_named}.")
+        holders = named
     if len(holders) == 1:
         return f"{holders[0]}.{name}"
     if len(holders) > 1:
@@ -77,8 +86,8 @@ def flat_parameters(params: dict) -> dict:
 
 def resolve(params: dict, name: str) -> tuple[str, str, str]:
     """(namespace, owner, key) of a dotted name in `params`; SceneError if it names nothing."""
-    full = qualify(name, {namespace: tuple(owners) for namespace, owners in params.items()})
     flat = flat_parameters(params)
+    full = qualify(name, {namespace: tuple(owners) for namespace, owners in params.items()}, flat.__contains__)
     if full not in flat:
         hint = difflib.get_close_matches(full, list(flat), n=1)
         suggestion = f" (did you mean {hint[0]!r}?)" if hint else f" (known: {', '.join(flat)})"

@@ -58,7 +58,8 @@ def field_unit(snapshots, field):
 def check_output(path, allowed=FORMATS):
     suffix = Path(path).suffix.lower()
     if suffix not in allowed:
-        raise SceneError(f"-o {str(path)!r}: the file type must be one of {', '.join(allowed)}.")
+        kinds = allowed[0] if len(allowed) == 1 else "one of " + ", ".join(allowed)
+        raise SceneError(f"-o {str(path)!r}: the file type must be {kinds}.")
     return suffix
 
 

@@ -56,10 +56,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
-from jaxmpm.bodies import (
-    Grid, free_motions, impose_kinematic_fields, keep_points_outside, move_kinematic_bodies, node_positions, outline_pairs,
-    solve_rigid_motions,
-)
+from jaxmpm.bodies import Grid, impose_body_motions, keep_points_outside, move_kinematic_bodies
 from jaxmpm.contact import Interface, resolve_interfaces
 from jaxmpm.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
@@ -422,14 +419,10 @@ def make_step(structure: Structure):
         velocity_old, velocity_new = jax.named_call(update_grid_velocity, name="update_grid")(
             nodes, dt, structure.damping, constrain, floor
         )
-        impulses, motions = [], {}
-        if structure.has_kinematic_bodies:
-            time_new = (state.step + 1).astype(particles.x.dtype) * dt
-            positions = node_positions(layout, particles.x.dtype)
-            motions = free_motions(params, state, structure, time_new)
-            grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, nodes.mass > floor)
-            motions = jax.named_call(solve_rigid_motions, name="rigid_bodies")(structure, motions, grid, frictions, positions)
-            velocity_new = impose_kinematic_fields(velocity_new, structure, motions, positions)
+        time_new = (state.step + 1).astype(particles.x.dtype) * dt
+        grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, nodes.mass > floor)
+        velocity_new, motions = impose_body_motions(params, state, structure, grid, frictions, time_new)
+        impulses = []
         if structure.interfaces:
             velocity_new, impulses = jax.named_call(resolve_interfaces, name="contact")(
                 structure.interfaces, nodes.mass, velocity_new, nodes.mass_gradient, frictions, nodes.mass > floor
@@ -440,8 +433,7 @@ def make_step(structure: Structure):
             particles, stencil, velocity_old, velocity_new, field, structure.memory, dt, layout, structure.derivatives
         )
         state, reactions = move_kinematic_bodies(state.replace(particles=particles), start, structure, motions, impulses)
-        if outline_pairs(structure):
-            state = keep_points_outside(state, structure, motions)
+        state = keep_points_outside(state, structure, motions)
         particles = state.particles
         if structure.update == "musl":
             velocity_new = jax.named_call(remap_velocity, name="remap_velocity")(

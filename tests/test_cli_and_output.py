@@ -138,3 +138,12 @@ def test_the_library_imports_nothing_of_inverse_and_the_command_still_calibrates
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "x.toml"
+
+
+def test_version(capsys):
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as stopped:
+        main(["--version"])
+    assert stopped.value.code == 0
+    assert capsys.readouterr().out.strip() == f"jaxmpm {version('jaxmpm')}"

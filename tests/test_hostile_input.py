@@ -235,3 +235,15 @@ def test_a_grid_too_large_for_memory_is_refused_with_the_estimate(tmp_path, caps
     status, peak = check(tmp_path, tomli_w.dumps(data).encode())
     assert status == 2
     assert_one_clear_line(status, capsys, peak, "the scene needs about")
+
+
+def test_a_file_of_the_other_kind_is_named_as_such(capsys):
+    # A calibration file given to `run`, and a scene file given to `calibrate`: one sentence
+    # saying which kind of file it is and which command takes it (not "grid is not a known key").
+    from pathlib import Path
+
+    examples = Path(__file__).parents[1] / "examples"
+    assert main(["run", str(examples / "calibrate_twin.calibration.toml")]) == 2
+    assert "is a calibration file" in capsys.readouterr().err
+    assert main(["calibrate", str(examples / "calibrate_twin_scene.toml")]) == 2
+    assert "is a scene file" in capsys.readouterr().err

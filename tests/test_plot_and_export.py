@@ -334,3 +334,13 @@ def test_hdf5_says_its_geometry_and_extent_and_older_files_still_load(axisymmetr
     assert loaded.geometry == "axisymmetric" and loaded.scene_toml == axisymmetric[0].scene_toml
     np.testing.assert_array_equal(loaded.snapshots["cylinder"]["stress"],
                                   axisymmetric[0].snapshots["cylinder"]["stress"])
+
+
+def test_plot_names_every_file_type_it_writes(tmp_path, capsys):
+    # -o with a wrong type is refused before the result is read, naming the types -o takes:
+    # .png, .gif and .mp4 for snapshots, .png for probe plots.
+    assert main(["plot", str(tmp_path / "missing.h5"), "-o", str(tmp_path / "a.jpg")]) == 2
+    message = capsys.readouterr().err
+    assert ".png, .gif, .mp4" in message and "a.jpg" in message
+    assert main(["plot", str(tmp_path / "missing.h5"), "--probes", "-o", str(tmp_path / "a.gif")]) == 2
+    assert "must be .png" in capsys.readouterr().err

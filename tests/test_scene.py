@@ -1,6 +1,7 @@
 """Scene files: round trip, and one clear error for every class of bad input (the scene format of jaxmpm.scene)."""
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -236,3 +237,17 @@ def test_a_scene_at_its_stability_limit_runs_with_its_own_values(dtype):
         sim = jaxmpm.Simulation(scene)
         assert sim.dt <= scene.stable_dt * (1 + 1e-6)
         sim.check_time_step(sim.cast(sim.params))          # no error
+
+
+def test_a_body_and_its_material_may_share_a_name_in_set():
+    # The paper examples name the body and its material "sand": a short name resolves to the
+    # only namespace where the key exists, and a name that exists in none is still refused.
+    scene = jaxmpm.load_scene(Path(__file__).parents[1] / "examples" / "retaining_wall.toml")
+    assert "sand" in scene.materials and any(body.name == "sand" for body in scene.bodies)
+    assert scene.with_value("sand.friction_angle", 32.0).materials["sand"].friction_angle == 32.0
+    moving = scene.with_value("sand.velocity", [0.0, -1.0])
+    assert tuple(next(body for body in moving.bodies if body.name == "sand").velocity) == (0.0, -1.0)
+    with pytest.raises(SceneError, match="'colour' is not a key of the material 'sand' or body 'sand'"):
+        scene.with_value("sand.colour", 1.0)
+    params = jaxmpm.parameters.scene_parameters(scene)
+    assert float(jaxmpm.with_values(params, {"sand.friction_angle": 31.0})["materials"]["sand"]["friction_angle"]) == 31.0

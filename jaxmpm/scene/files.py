@@ -35,7 +35,15 @@ def load_scene(path) -> Scene:
         text = data.decode()
     except UnicodeDecodeError as error:
         raise SceneError(f"scene file {str(path)!r} is not UTF-8 text (byte {error.start}).") from None
-    return scene_from_toml(text)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
+        raise SceneError(f"the scene is not valid TOML: {error}.") from None
+    calibration_keys = [key for key in ("fit", "observations", "experiments", "optimizer") if key in data]
+    if calibration_keys and "grid" not in data:
+        raise SceneError(f"{str(path)!r} is a calibration file (it has `{calibration_keys[0]}`), not a scene file: "
+                         f"give it to `jaxmpm calibrate`, or give a scene file here.")
+    return scene_from_dict(data)
 
 
 def scene_from_toml(text: str) -> Scene:
@@ -140,6 +148,20 @@ def scene_to_toml(scene: Scene) -> str:
 # --------------------------------------------------------------------------- one value
 
 
+def _names_a_key(scene: Scene, full: str) -> bool:
+    """Whether "materials.NAME.KEY", "bodies.NAME.KEY" or "contacts.PAIR.KEY" names a key the
+    scene file has for that material, body or contact pair."""
+    namespace, owner, *rest = full.split(".")
+    if len(rest) != 1:
+        return False
+    if namespace == "materials":
+        material = scene.materials.get(owner)
+        return material is not None and rest[0] in {key.name for key in material.keys}
+    if namespace not in ("bodies", "contacts"):
+        return False
+    return rest[0] in SCENE_FILE.key(namespace).section.all_names()
+
+
 def scene_with_value(scene: Scene, key: str, value) -> Scene:
     """`Scene.with_value`: the scene with the value at dotted `key` replaced (see there)."""
     from jaxmpm.parameters import qualify
@@ -150,7 +172,7 @@ def scene_with_value(scene: Scene, key: str, value) -> Scene:
     head = key.partition(".")[0]
     if head not in data and head not in ("scene", "grid", "numerics", "probes"):
         try:
-            key = qualify(key, owners)
+            key = qualify(key, owners, lambda full: _names_a_key(scene, full))
         except SceneError as error:
             raise SceneError(f"--set {key}: {error}") from None
     parts = key.split(".")
