@@ -103,6 +103,13 @@ def run_command(arguments):
 
     output = output_path(arguments.output, arguments.scene)
     sim = checked_simulation(arguments)
+    if not arguments.resume:
+        from jaxmpm.output import resumable_steps
+
+        done = resumable_steps(output)
+        if done:
+            raise SceneError(f"{str(output)!r} holds {done} computed steps of an unfinished run: continue it with "
+                             "--resume, or give another -o (or remove the file) to start again.")
     print(describe(sim), file=sys.stderr)
     try:
         sim.run(progress=not arguments.quiet, save_to=output, resume=arguments.resume)
@@ -190,6 +197,18 @@ def read_result(path):
     except (OSError, KeyError) as error:
         if isinstance(error, OSError) and not h5py.is_hdf5(path):
             raise SceneError(f"{path!r} is not an HDF5 file.") from None
+        try:
+            with h5py.File(path, "r") as file:
+                written_by_jaxmpm = "jaxmpm_version" in file.attrs
+                fit = "covariance" in file and "optimizer" in file.attrs
+                kind = "a calibration result (`jaxmpm calibrate`)" if fit else None
+        except OSError:
+            raise SceneError(f"{path!r} is damaged (HDF5 cannot open it, e.g. a copy cut short): "
+                             "run the scene again, or with --resume if a full copy of the file exists.") from None
+        if kind:
+            raise SceneError(f"{path!r} is {kind}, not a run: open it with inverse.Fit in Python.") from None
+        if written_by_jaxmpm:
+            raise SceneError(f"{path!r} is a jaxmpm output file with parts missing or damaged ({error}).") from None
         raise SceneError(f"{path!r} is not a jaxmpm output file (written by `jaxmpm run`).") from None
 
 

@@ -54,6 +54,22 @@ def _growing(group, name, first_rows, compress=False):
                                 **options)
 
 
+def resumable_steps(path) -> int:
+    """Steps done by the interrupted or failed run held in `path` that `--resume` could
+    continue (0: no file, a complete run, or not a run file)."""
+    path = Path(path)
+    if not path.is_file() or not h5py.is_hdf5(path):
+        return 0
+    try:
+        with h5py.File(path, "r") as file:
+            attrs = file.attrs
+            if "resume" not in file or bool(attrs.get("complete", True)):
+                return 0
+            return int(attrs.get("steps_done", 0))
+    except (OSError, KeyError):
+        return 0
+
+
 class RunFile:
     """The open HDF5 file of a run in progress (see the module docstring)."""
 

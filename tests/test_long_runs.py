@@ -65,6 +65,12 @@ def test_a_run_stopped_by_sigterm_and_resumed_equals_the_run_never_stopped(tmp_p
     kept = stopped_attributes["steps_done"] + 1
     np.testing.assert_array_equal(stopped["probes/wall_move"], reference["probes/wall_move"][:kept])
 
+    # run again without --resume: refused in one line, the computed steps kept
+    capsys.readouterr()
+    assert main(["run", *WALL, "-o", str(part), "--quiet"]) == 2
+    assert f"holds {stopped_attributes['steps_done']} computed steps" in capsys.readouterr().err
+    assert datasets(part)[1]["steps_done"] == stopped_attributes["steps_done"]
+
     assert main(["run", *WALL, "-o", str(part), "--quiet", "--resume"]) == 0
     resumed, resumed_attributes = datasets(part)
     assert resumed_attributes["complete"] and resumed.keys() == reference.keys()

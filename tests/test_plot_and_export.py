@@ -186,6 +186,7 @@ def test_cli_writes_png_gif_and_probe_plots(two_bodies, tmp_path):
         (["plot", "{missing}"], ["does not exist"]),
         (["plot", "{not_hdf5}"], ["not an HDF5 file"]),
         (["export", "{not_jaxmpm}"], ["not a jaxmpm output file"]),
+        (["plot", "{cut}"], ["cut.h5", "is damaged"]),
         (["plot", "{run}", "--field", "porosity"], ["field 'porosity'", "choose one of"]),
         (["plot", "{run}", "--field", "v"], ["field 'v'", "speed"]),
         (["plot", "{run}", "--field", "stress"], ["field 'stress'", "sigma_xx"]),
@@ -211,14 +212,16 @@ def test_plot_and_export_user_errors_exit_2_with_one_line(two_bodies, axisymmetr
     (tmp_path / "clash").write_text("a file where the VTU folder would go")
     with h5py.File(tmp_path / "other.h5", "w") as file:
         file["data"] = np.zeros(3)
-    names = {"missing": tmp_path / "missing.h5", "not_hdf5": tmp_path / "notes.h5",
+    whole = two_bodies[1].read_bytes()
+    (tmp_path / "cut.h5").write_bytes(whole[: len(whole) // 2])      # a copy cut short
+    names = {"missing": tmp_path / "missing.h5", "not_hdf5": tmp_path / "notes.h5", "cut": tmp_path / "cut.h5",
              "not_jaxmpm": tmp_path / "other.h5", "run": two_bodies[1], "axi": axisymmetric[1], "tmp": tmp_path}
     assert main([argument.format(**names) for argument in arguments]) == 2
     error = capsys.readouterr().err.strip()
     assert len(error.splitlines()) == 1 and "Traceback" not in error
     for word in words:
         assert word in error
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["clash", "notes.h5", "other.h5"]   # nothing written
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clash", "cut.h5", "notes.h5", "other.h5"]   # nothing written
 
 
 def test_export_again_replaces_its_own_files_and_leaves_others(two_bodies, tmp_path):
