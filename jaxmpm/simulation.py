@@ -29,6 +29,7 @@ from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.grid import GridLayout
 from jaxmpm.initial_stress import depth_below_top, geostatic_stress, jaky_k0
 from jaxmpm.contact import Interface
+from jaxmpm.kernels.xla_options import compiler_options, jit_with_options
 from jaxmpm.keys import is_concrete
 from jaxmpm.materials.base import material_parameters
 from jaxmpm.parameters import scene_parameters
@@ -44,7 +45,6 @@ from jaxmpm.solver import (
 from jaxmpm.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
 from jaxmpm.time_step import exceeds, material_limits, time_stepping
 from jaxmpm.tracing import collector_paused
-from jaxmpm.kernels.xla_options import compiler_options, jit_with_options
 
 
 def check_dtype(scene: Scene):
