@@ -166,13 +166,16 @@ class Fit:
     def summary(self) -> str:
         cost = self.cost
         kind = "forward passes with tangents" if self.optimizer == "lm" else "forward + reverse passes"
+        later = cost["seconds_per_iteration"]
+        timing = (f"{cost['first_iteration']:.1f} s first iteration with compiling"
+                  + (f", {later:.2f} s per later one" if np.isfinite(later) else ""))
         lines = [f"{self.optimizer}: loss {self.loss:.6g} after {self.iterations} iterations, "
                  f"{self.evaluations} simulations ({kind}), {self.wall_time:.1f} s "
-                 f"({cost['first_iteration']:.1f} s first iteration with compiling, "
-                 f"{cost['seconds_per_iteration']:.2f} s per later one), peak memory {cost['peak_memory_mb']:.0f} MB"]
+                 f"({timing}), peak memory {cost['peak_memory_mb']:.0f} MB"]
         if len(self.experiments) > 1:
             lines.append(f"  experiments: {', '.join(e.name for e in self.experiments)}")
         verdicts = self.identifiability()
+        lines.append("  value +- one standard error (Gauss-Newton, at the fitted values):")
         for name in self.names:
             lines.append(f"  {name} = {self.params[name]:.6g} +- {self.stderr[name]:.3g}   {verdicts[name]}")
         lines.extend(self.numerical_error_lines())

@@ -405,5 +405,6 @@ def test_the_numerical_check_predicts_the_bias_of_a_coarse_fit():
     assert abs(bias) > 1e-3                          # the coarse step does bias the fit ...
     assert fit.numerical_shifts["dt"][0] == pytest.approx(-bias, rel=0.05)     # ... and the check sees it
     assert "numerical error (time step halved): rod.young" in fit.summary()
+    assert "+- one standard error" in fit.summary() and "nan s" not in fit.summary()
     with pytest.raises(SceneError, match=r"numerical_check = 'dx': 'dx' is not one of 'dt', 'cell'"):
         inverse.calibrate(coarse, measured, {"rod.young": (50.0, 200.0)}, progress=False, numerical_check="dx")
