@@ -501,15 +501,24 @@ def describe_failure(sim: Simulation, state: State) -> str:
 
 def instability_hint(sim: Simulation, state: State) -> str:
     """A clause for `describe_failure` when the failure looks like a numerical instability:
-    by the state's step some point moved more than a cell per step (|v| dt > h) or is
-    non-finite, which physical motion within the CFL limit never does. Empty otherwise (a
-    body that simply flows off a free edge, say)."""
-    speeds = np.hypot(*np.asarray(state.particles.v, np.float64).reshape(-1, 2).T)
-    finite = np.all(np.isfinite(speeds)) and np.all(np.isfinite(np.asarray(state.particles.x)))
-    if finite and np.max(speeds, initial=0.0) * sim.dt <= sim.scene.grid.cell:
-        return ""
+    the first failure is a non-finite point, or by the state's step a point that never failed
+    moves more than a cell per step (|v| dt > h), which physical motion within the CFL limit
+    never does. Points that have left the grid are not judged: the grid no longer carries
+    them, and their values after leaving mean nothing. Empty when the others move within the
+    limit (a body that simply flows off a free edge, say); a clause saying both readings when
+    no point is left to judge."""
+    flags = np.asarray(state.particles.flags)
     scene = sim.scene
     key, value = ("scene.dt", scene.dt) if scene.dt is not None else ("scene.cfl", scene.cfl)
+    first_left = bool(flags[int(state.error_point)] & state_bits.LEFT_GRID)
+    judged = flags == 0
+    if first_left and not judged.any():
+        return (f" (by the end of the output interval every point had failed: if the body should stay on the "
+                f"grid, the step may be unstable, lower {key}; if it leaves through a free edge, enlarge grid.size)")
+    speeds = np.hypot(*np.asarray(state.particles.v, np.float64)[judged].reshape(-1, 2).T)
+    fine = np.all(np.isfinite(speeds)) and np.all(np.isfinite(np.asarray(state.particles.x)[judged]))
+    if first_left and fine and np.max(speeds, initial=0.0) * sim.dt <= scene.grid.cell:
+        return ""
     numerics = scene.numerics
     return (
         f" (by then points moved more than a cell per step or went non-finite: the step is unstable "
