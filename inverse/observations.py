@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import difflib
 import re
 from pathlib import Path
 
@@ -86,7 +87,9 @@ class Observations:
         for label, table in (("sigma", sigma), ("window", window)):
             unknown = sorted(set(table) - set(data))
             if unknown:
-                raise SceneError(f"{label}.{unknown[0]} names no observed probe (observed: {', '.join(data)}).")
+                close = difflib.get_close_matches(unknown[0], list(data), n=1)
+                hint = f"; is the observations' {close[0]!r} a misspelling of it?" if close else ""
+                raise SceneError(f"{label}.{unknown[0]} names no observed probe (observed: {', '.join(data)}){hint}.")
         channels = {}
         for name, entry in data.items():
             times, values, *rest = entry
@@ -98,21 +101,29 @@ class Observations:
     def from_csv(cls, path, sigma: dict | None = None, window: dict | None = None) -> Observations:
         path = Path(path)
         with open(path, newline="") as stream:
-            rows = [row for row in csv.reader(stream) if row and not row[0].lstrip().startswith("#")]
-        if not rows or rows[0][0].strip() != "time":
+            rows = [(number, row) for number, row in enumerate(csv.reader(stream), start=1)
+                    if row and not row[0].lstrip().startswith("#")]
+        if not rows or rows[0][1][0].strip() != "time":
             raise SceneError(f"{path}: the first column must be headed 'time'.")
+        header = rows[0][1]
         columns = []
-        for header in rows[0][1:]:
-            match = COLUMN.match(header)
+        for name in header[1:]:
+            match = COLUMN.match(name)
             if not match:
-                raise SceneError(f"{path}: column {header!r} must be named like probe[k] (e.g. top[1]).")
+                raise SceneError(f"{path}: column {name!r} must be named like probe[k] (e.g. top[1]).")
             columns.append((match.group(1), int(match.group(2))))
-        try:
-            table = np.array([[float(cell) for cell in row] for row in rows[1:]])
-        except ValueError as error:
-            raise SceneError(f"{path}: {error}.") from None
-        if table.ndim != 2 or table.shape[1] != len(columns) + 1:
-            raise SceneError(f"{path}: every row must have {len(columns) + 1} numbers.")
+        if len(rows) == 1:
+            raise SceneError(f"{path}: the file has a header but no rows of measurements.")
+        values = []
+        for line, row in rows[1:]:
+            if len(row) != len(header):
+                raise SceneError(f"{path}, line {line}: {len(row)} values, but the header names {len(header)} columns.")
+            try:
+                values.append([float(cell) for cell in row])
+            except ValueError:
+                column = next(index for index, cell in enumerate(row) if not _is_number(cell))
+                raise SceneError(f"{path}, line {line}, column {header[column]!r}: {row[column]!r} is not a number.") from None
+        table = np.array(values)
         grouped = {}
         for index, (name, component) in enumerate(columns, start=1):
             grouped.setdefault(name, []).append((component, index))
@@ -161,6 +172,14 @@ class Observations:
     @property
     def noise_known(self) -> bool:
         return all(c.sigma is not None for c in self.channels.values())
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def load_observations(path, sigma: dict | None = None, window: dict | None = None) -> Observations:

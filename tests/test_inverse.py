@@ -283,6 +283,27 @@ def test_observation_files_round_trip(tmp_path):
     np.testing.assert_array_equal(loaded.channels["footing"].values, result.probes["footing"])
 
 
+@pytest.mark.parametrize("text, words", [
+    ("time,footing[1]\n0.0,1.0\n0.1,2.0,3.0\n", ["line 3", "3 values", "names 2 columns"]),      # a ragged row
+    ("time,footing[1]\n0.0,1.0\n0.1,n/a\n", ["line 3", "column 'footing[1]'", "'n/a' is not a number"]),
+    ("time,footing[1]\n", ["a header but no rows"]),
+])
+def test_observation_csv_errors_name_line_and_column(tmp_path, text, words):
+    path = tmp_path / "obs.csv"
+    path.write_text(text)
+    with pytest.raises(SceneError) as caught:
+        inverse.load_observations(path)
+    for word in words:
+        assert word in str(caught.value)
+
+
+def test_a_misspelt_column_is_suggested_where_the_noise_names_the_probe(tmp_path):
+    path = tmp_path / "obs.csv"
+    path.write_text("time,footng[1]\n0.0,1.0\n0.1,2.0\n")
+    with pytest.raises(SceneError, match=r"sigma.footing names no observed probe .*'footng' a misspelling"):
+        inverse.load_observations(path, sigma={"footing": 1e-5})
+
+
 def test_bad_calibration_input_is_a_clear_error():
     sim = twin_simulation()
     observations = twin_observations()
