@@ -196,8 +196,10 @@ def residual_function(sim, observations: Observations, insert):
     layout = [(name, channel.components, window_steps(channel.window, sim.dt))
               for name, channel in observations.channels.items()]
 
+    variants = {kind: sim.for_derivatives(kind) for kind in ("any", "forward", "reverse")}   # built once, not while tracing
+
     def residuals(values, data, base, derivatives="any"):
-        probes = sim.for_derivatives(derivatives).probes(insert(values, base))
+        probes = variants[derivatives].probes(insert(values, base))
         parts = []
         for (name, components, width), (times, observed, scale) in zip(layout, data):
             history = window_mean(probes[name], width)

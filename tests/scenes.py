@@ -64,3 +64,15 @@ def reverse_mode_against_central_differences(sim, loss, cases, rel):
         reference = (float(above) - float(below)) / (2 * step)
         assert float(derivative) != 0.0
         assert float(derivative) == pytest.approx(reference, rel=rel), name
+
+
+def jaxpr_equations(jaxpr):
+    """Every equation of `jaxpr` and of the jaxprs nested in its equations (loops, conditionals,
+    checkpoints, custom derivatives)."""
+    for equation in jaxpr.eqns:
+        yield equation
+        for value in equation.params.values():
+            for inner in value if isinstance(value, (tuple, list)) else (value,):
+                inner = getattr(inner, "jaxpr", inner)
+                if hasattr(inner, "eqns"):
+                    yield from jaxpr_equations(inner)

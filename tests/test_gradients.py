@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import jaxmpm
-from tests.scenes import BLOCK
+from tests.scenes import BLOCK, jaxpr_equations
 
 EXAMPLES = pathlib.Path(__file__).resolve().parents[1] / "examples"
 
@@ -154,17 +154,6 @@ VISCOPLASTIC_BLOCK = BLOCK.replace(
 ).replace("duration = 0.01", "duration = 0.03")
 
 
-def equations(jaxpr):
-    """Every equation of `jaxpr` and of the jaxprs nested in its equations."""
-    for equation in jaxpr.eqns:
-        yield equation
-        for value in equation.params.values():
-            for inner in value if isinstance(value, (tuple, list)) else (value,):
-                inner = getattr(inner, "jaxpr", inner)
-                if hasattr(inner, "eqns"):
-                    yield from equations(inner)
-
-
 def test_recomputed_steps_keep_the_perzyna_roots_instead_of_solving_again():
     # rollout.KEPT_SOLVES: "recompute" and "recompute_grid" keep each point's Perzyna root
     # from the forward pass, so the gradient's program holds the Newton loop of the forward
@@ -175,7 +164,7 @@ def test_recomputed_steps_keep_the_perzyna_roots_instead_of_solving_again():
     for step in ("store", "recompute", "recompute_grid"):
         sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(VISCOPLASTIC_BLOCK), jaxmpm.Checkpointing(segment=10**6, step=step))
         program = jax.value_and_grad(lambda p, sim=sim: settlement_measure(sim, p))
-        newton_loops = [e for e in equations(jax.make_jaxpr(program)(sim.params).jaxpr) if e.primitive.name == "while"]
+        newton_loops = [e for e in jaxpr_equations(jax.make_jaxpr(program)(sim.params).jaxpr) if e.primitive.name == "while"]
         assert len(newton_loops) == 1, (step, len(newton_loops))
         results[step] = jax.jit(program)(sim.params)
     assert np.all(np.asarray(sim.final_state().particles.history[0]["plastic_strain"]) > 0.0)

@@ -11,7 +11,7 @@ from jaxmpm.kernels.fusion import materialized
 from jaxmpm.kernels.scatter import batched_add_to_nodes
 from jaxmpm.scene.files import scene_from_toml
 from jaxmpm.simulation import Simulation
-from tests.scenes import BLOCK
+from tests.scenes import BLOCK, jaxpr_equations
 
 LAYOUT = GridLayout((0.0, 0.0), 0.1, (10, 8), "bspline2", 2)
 FIELDS = 2
@@ -60,22 +60,11 @@ def test_batched_scatter_keeps_each_window_contiguous():
     values = jax.random.normal(jax.random.PRNGKey(3), (3, COUNT, 3, 3, 4))
     base = bases(1)[0]
     jaxpr = jax.make_jaxpr(jax.vmap(lambda values: kernel(base, values, FIELD)))(values)
-    shapes = [tuple(v.aval.shape for v in eqn.invars) for eqn in iter_equations(jaxpr.jaxpr)
+    shapes = [tuple(v.aval.shape for v in eqn.invars) for eqn in jaxpr_equations(jaxpr.jaxpr)
               if eqn.primitive.name == "scatter-add"]
     assert len(shapes) == 1
     operand, _, updates = shapes[0]
     assert updates == (3 * COUNT, 3, 3, 4) and operand[1:] == (3, 3, 4)
-
-
-def iter_equations(jaxpr):
-    """Every equation of `jaxpr` and of the jaxprs nested in its equations."""
-    for equation in jaxpr.eqns:
-        yield equation
-        for value in equation.params.values():
-            for inner in value if isinstance(value, (tuple, list)) else (value,):
-                inner = getattr(inner, "jaxpr", inner)
-                if hasattr(inner, "eqns"):
-                    yield from iter_equations(inner)
 
 
 def test_batched_scatter_tangents_are_the_plain_tangents():
