@@ -111,6 +111,7 @@ def run_command(arguments):
             raise SceneError(f"{str(output)!r} holds {done} computed steps of an unfinished run: continue it with "
                              "--resume, or give another -o (or remove the file) to start again.")
     print(describe(sim), file=sys.stderr)
+    print_notes(sim.scene)
     try:
         sim.run(progress=not arguments.quiet, save_to=output, resume=arguments.resume)
     except jaxmpm.SimulationError as error:
@@ -141,6 +142,12 @@ def describe(sim) -> str:
             f"{scene.numerics.dtype}")
 
 
+def print_notes(scene):
+    """The choices made for the scene that its file does not state (`Scene.notes`), on stderr."""
+    for note in scene.notes:
+        print(f"note: {note}", file=sys.stderr)
+
+
 def check_command(arguments):
     import jax
 
@@ -148,6 +155,7 @@ def check_command(arguments):
     from jaxmpm.budget import estimate_bytes
 
     sim = checked_simulation(arguments)
+    print_notes(sim.scene)
     parts = estimate_bytes(sim.scene, sim.steps)
     parts.pop("counts")
     print(f"{describe(sim)}, {sim.outputs} outputs; about {sum(parts.values()) / 1e6:.3g} MB of arrays for a forward run; "

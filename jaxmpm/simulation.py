@@ -137,8 +137,8 @@ class Simulation:
             boundaries=scene.grid.boundaries,
             gravity=scene.gravity,
             dt=self.dt,
-            transfer=scene.numerics.transfer,
-            memory=transfer_memory(scene.numerics.transfer, scene.numerics.flip, scene.numerics.relaxation,
+            transfer=scene.transfer,
+            memory=transfer_memory(scene.transfer, scene.numerics.flip, scene.numerics.relaxation,
                                    self.dt, slowest_crossing_time(scene)),
             damping=scene.numerics.damping,
             update=scene.numerics.update,
@@ -522,7 +522,7 @@ def instability_hint(sim: Simulation, state: State) -> str:
     numerics = scene.numerics
     return (
         f" (by then points moved more than a cell per step or went non-finite: the step is unstable "
-        f"with {key} = {value:g}, numerics.shape = {numerics.shape!r}, transfer = {numerics.transfer!r}, "
+        f"with {key} = {value:g}, numerics.shape = {numerics.shape!r}, transfer = {scene.transfer!r}, "
         f"update = {numerics.update!r}; lower {key} or change the numerics, see docs/stability.md)"
     )
 

@@ -18,6 +18,8 @@ import numpy as np
 import pytest
 import tomli_w
 
+import jaxmpm
+from jaxmpm.cli import main
 from jaxmpm.contact import Interface, contact_normals, contact_velocity_change, resolve_interfaces
 from jaxmpm.simulation import velocity_fields
 from tests.scenes import reverse_mode_against_central_differences
@@ -140,6 +142,32 @@ def test_block_sticks_when_tan_theta_is_below_friction():
     hold = np.asarray(probes["hold"][len(sim.time) // 2 :]).mean(axis=0)
     weights = 1000.0 * (1.0 * 0.1 + 0.2 * 0.1) * np.asarray(sim.scene.gravity)
     np.testing.assert_allclose(hold, -weights, rtol=0.03)
+
+
+def steep_held_block(numerics):
+    """A block on a 30 degree slope with mu = 1.5 > tan 30 (friction must hold it), 0.4 s."""
+    scene = sliding_block(30.0, 1.5, duration=0.4)
+    return dataclasses.replace(scene, numerics=numerics)
+
+
+def test_fast_preset_holds_frictional_contact(tmp_path, capsys):
+    # Friction holds the block: it moves only by its elastic shear (~0.2 mm). FLIP's per-step
+    # blend lets it creep (5.4 mm in 0.4 s, and growing), so the fast preset runs contact scenes
+    # with APIC and says so; a transfer the scene states is kept.
+    fast = steep_held_block(Numerics(preset="fast"))
+    assert fast.transfer == "apic" and fast.notes
+    moved = np.abs(np.asarray(Simulation(fast).probes()["move"][:, 0]))
+    assert np.max(moved) < 3e-4
+    flip = steep_held_block(Numerics(preset="fast", transfer="flip"))
+    assert flip.transfer == "flip" and not flip.notes
+    crept = np.asarray(Simulation(flip).probes()["move"][:, 0])
+    assert crept[-1] > 2e-3
+    assert sliding_block(30.0, 1.5).notes == ()          # APIC scenes: nothing to say
+    path = tmp_path / "held.toml"
+    path.write_text(fast.to_toml())
+    assert "transfer" not in jaxmpm.load_scene(path).numerics.given()   # the file states nothing new
+    assert main(["check", str(path)]) == 0
+    assert "note: the fast preset's FLIP transfer" in capsys.readouterr().err
 
 
 # --------------------------------------------------------------------------- two discs

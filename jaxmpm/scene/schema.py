@@ -57,7 +57,8 @@ NUMERICS = Section((
     Key("shape", "str", "shape functions: 'linear' (tent), 'gimp' (uGIMP), 'bspline2' (quadratic B-spline)"
         + _from_preset("shape"), default=None, choices=NUMERICS_CHOICES["shape"]),
     Key("transfer", "str", "particle-grid velocity transfer: 'flip' (FLIP/PIC blend) or 'apic' (affine PIC)"
-        + _from_preset("transfer"), default=None, choices=NUMERICS_CHOICES["transfer"]),
+        + _from_preset("transfer") + "; a scene with contact pairs takes 'apic' where the fast preset would give "
+        "'flip' (FLIP lets frictional contact creep)", default=None, choices=NUMERICS_CHOICES["transfer"]),
     Key("flip", "float", "FLIP fraction of the blend (1 = pure FLIP, 0 = PIC; only with transfer = 'flip')"
         + _from_preset("flip"), default=None, low=0.0, high=1.0, low_inclusive=True, high_inclusive=True),
     Key("ppc", "int", "material points per cell along each axis" + _from_preset("ppc"), default=None,
