@@ -1,7 +1,7 @@
 """Time-step and cell convergence of the headline quantities: the tables of docs/convergence.md.
 
     python benchmarks/convergence_study.py                 # every study (about 25 min on 2 cores)
-    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | examples | cells
+    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | examples | cells | example_cells
 
 Each run is a forward run of a scene at some numerics; the quantities are read at every
 output time and the largest relative change between two runs is reported.
@@ -11,13 +11,18 @@ output time and the largest relative change between two runs is reported.
   displacement at 0.1 and 0.2 s, at cfl 0.4, 0.2, 0.1, with plain APIC (numerics.relaxation
   = 0, the default) and with relaxation 10.
 - stiff: the same wall as a rigid body and as a free elastic body (E = 3 and 30 GPa; the
-  elastic wall's p-wave sets a step 20-60 times shorter).
+  elastic wall's p-wave sets a step 20-60 times shorter), each elastic wall against the rigid
+  one at the same dt; and a pile (0.04 x 0.3 m, steel density, E = 30 GPa as an elastic body)
+  dropped at 2 m/s into the same sand, its sinking (mean displacement) to rest over 0.1 s, as a
+  rigid body at cfl 0.4 ... 0.05 and at the elastic pile's dt, and as an elastic body.
 - examples: the headline quantities of examples/retaining_wall.toml (wall top, rotation;
   first 0.4 s), pile_driving.toml (head force at 5 and 10 cm, heave; first 0.2 s) and
   column_collapse.toml (front, centre of mass; the whole 1 s) at the shipped cfl and at half.
 - cells: the small wall at h, h/2, h/4 (ppc 2) and at h with ppc 3: observed order and the
   Richardson-extrapolated value p = log2((q_h - q_h/2) / (q_h/2 - q_h/4)),
   q* = q_h/4 + (q_h/4 - q_h/2) / (2^p - 1).
+- example_cells: the same for each example's headline quantities at their last time (about
+  an hour on 2 cores: h/4 has 16 times the points and twice the steps of h each).
 A study, not a test: it prints markdown tables.
 """
 
@@ -79,6 +84,53 @@ kind = "displacement"
 at = [0.525, 0.45]
 """
 
+PILE_SCENE = """
+[scene]
+name = "dropped_pile"
+gravity = [0.0, -9.81]
+duration = 0.1
+cfl = 0.4
+output_every = 0.01
+[grid]
+size = [0.6, 0.7]
+cell = 0.02
+boundaries = {{ left = "slip", right = "slip", bottom = "fixed", top = "free" }}
+[numerics]
+shape = "linear"
+transfer = "apic"
+ppc = 2
+dtype = "float64"
+relaxation = 10.0
+[materials.sand]
+model = "drucker_prager"
+density = 1800.0
+young = 5.0e6
+poisson = 0.3
+friction_angle = 30.0
+[materials.steel]
+model = "linear_elastic"
+density = 7850.0
+young = 30.0e9
+poisson = 0.3
+[[bodies]]
+name = "sand"
+material = "sand"
+region = {{ rectangle = [[0.0, 0.0], [0.6, 0.3]] }}
+initial_stress = {{ geostatic = {{ k0 = "jaky" }} }}
+[[bodies]]
+name = "pile"
+material = "steel"
+region = {{ rectangle = [[0.28, 0.32], [0.32, 0.62]] }}
+velocity = [0.0, -2.0]
+kinematics = {{ type = "{kinematics}" }}
+[[contacts]]
+pair = ["sand", "pile"]
+friction = 0.3
+[[probes]]
+name = "sink"
+kind = "body_displacement"
+body = "pile"
+"""
 
 WALL_RELAXATION = 10.0      # numerics.relaxation of the small wall (tests/test_convergence.py's)
 
@@ -133,16 +185,57 @@ def wall_study():
 
 def stiff_study():
     print("\n### Rigid and stiff elastic wall: top displacement [mm] at 0.1 / 0.2 s\n")
-    print("| wall | steps | top at 0.1 s | top at 0.2 s | against the rigid wall | run [s] |")
-    print("|---|---|---|---|---|---|")
-    rigid = None
-    for kinematics, young in (("rigid", 30.0e9), ("free", 3.0e9), ("free", 30.0e9)):
-        t, probes, steps, seconds = run(small_wall(kinematics, young))
-        top = -1e3 * at_times(t, probes["wall_top"][:, 0], (0.1, 0.2))
-        rigid = top if rigid is None else rigid
-        label = "rigid" if kinematics == "rigid" else f"elastic, E = {young / 1e9:g} GPa"
-        change = "" if kinematics == "rigid" else f"{100 * relative_change(top, rigid):.1f} %"
-        print(f"| {label} | {steps} | {top[0]:.2f} | {top[1]:.2f} | {change} | {seconds:.0f} |")
+    print("| wall | dt [µs] | steps | top at 0.1 s | top at 0.2 s | against the rigid wall at the same dt | run [s] |")
+    print("|---|---|---|---|---|---|---|")
+    t, probes, steps, seconds = run(small_wall("rigid"))
+    top = -1e3 * at_times(t, probes["wall_top"][:, 0], (0.1, 0.2))
+    print(f"| rigid | {1e6 * t[1]:.1f} | {steps} | {top[0]:.2f} | {top[1]:.2f} | | {seconds:.0f} |")
+    for young in (3.0e9, 30.0e9):
+        t, elastic, steps, seconds = run(small_wall("free", young))
+        top = -1e3 * at_times(t, elastic["wall_top"][:, 0], (0.1, 0.2))
+        t_rigid, rigid, rigid_steps, rigid_seconds = run(small_wall("rigid", **{"scene.dt": float(t[1])}))
+        rigid_top = -1e3 * at_times(t_rigid, rigid["wall_top"][:, 0], (0.1, 0.2))
+        change = most_apart(t, elastic["wall_top"][:, 0], t_rigid, rigid["wall_top"][:, 0], 0.02)
+        print(f"| rigid at the next row's dt | {1e6 * t_rigid[1]:.2f} | {rigid_steps} | {rigid_top[0]:.2f} | "
+              f"{rigid_top[1]:.2f} | | {rigid_seconds:.0f} |")
+        print(f"| elastic, E = {young / 1e9:g} GPa | {1e6 * t[1]:.2f} | {steps} | {top[0]:.2f} | {top[1]:.2f} | "
+              f"{change} | {seconds:.0f} |")
+    pile_study()
+
+
+def most_apart(t, values, t_reference, reference, every):
+    """'x.x % (at t s)': the largest relative difference of `values` from `reference` at the
+    output times (every `every` s) where the reference has moved more than 1 mm."""
+    times = np.arange(every, t[-1] + every / 2, every)
+    a, b = at_times(t, values, times), at_times(t_reference, reference, times)
+    moving = np.abs(b) > 1e-3
+    relative = np.abs(a - b)[moving] / np.abs(b)[moving]
+    worst = int(np.argmax(relative))
+    return f"{100 * relative[worst]:.1f} % (at {times[moving][worst]:.2f} s)"
+
+
+def pile_study():
+    import jaxmpm
+
+    print("\n### Dropped pile, rigid and elastic (E = 30 GPa): sinking [mm] at 0.05 / 0.07 / 0.1 s\n")
+    print("| pile | cfl | dt [µs] | steps | 0.05 s | 0.07 s | 0.1 s | against the rigid pile at the elastic one's dt | run [s] |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    times = (0.05, 0.07, 0.1)
+    elastic_runs = [(cfl, run(jaxmpm.Scene.from_toml(PILE_SCENE.format(kinematics="free")).with_value("scene.cfl", cfl)))
+                    for cfl in (0.4, 0.2)]
+    t_fine, fine, *_ = run(jaxmpm.Scene.from_toml(PILE_SCENE.format(kinematics="rigid")).with_value(
+        "scene.dt", float(elastic_runs[0][1][0][1])))
+    rigid_runs = [(cfl, run(jaxmpm.Scene.from_toml(PILE_SCENE.format(kinematics="rigid")).with_value("scene.cfl", cfl)))
+                  for cfl in (0.4, 0.2, 0.1, 0.05)]
+    for label, runs in (("rigid", rigid_runs), ("elastic", elastic_runs)):
+        for cfl, (t, probes, steps, seconds) in runs:
+            sink = -1e3 * at_times(t, probes["sink"][:, 1], times)
+            change = most_apart(t, probes["sink"][:, 1], t_fine, fine["sink"][:, 1], 0.01)
+            print(f"| {label} | {cfl} | {1e6 * t[1]:.2f} | {steps} | " + " | ".join(f"{v:.2f}" for v in sink)
+                  + f" | {change} | {seconds:.0f} |")
+    sink = -1e3 * at_times(t_fine, fine["sink"][:, 1], times)
+    print(f"| rigid, at the elastic pile's dt (cfl 0.4) | | {1e6 * t_fine[1]:.2f} | {len(t_fine) - 1} | "
+          + " | ".join(f"{v:.2f}" for v in sink) + " | | |")
 
 
 def pile_force(t, probes):
@@ -218,10 +311,8 @@ def cells_study():
             tops.append(top)
     coarse, middle, fine = tops
     for index, time_label in enumerate(("0.1 s", "0.2 s")):
-        ratio = (coarse[index] - middle[index]) / (middle[index] - fine[index])
-        if ratio > 0:
-            order = math.log2(ratio)
-            extrapolated = fine[index] + (fine[index] - middle[index]) / (2 ** order - 1)
+        order, extrapolated = richardson(coarse[index], middle[index], fine[index])
+        if math.isfinite(order):
             print(f"\nat {time_label}: observed order {order:.2f}, Richardson value {extrapolated:.2f} mm; "
                   f"error of h = 0.025: {100 * abs(coarse[index] - extrapolated) / abs(extrapolated):.0f} %")
         else:
@@ -229,7 +320,53 @@ def cells_study():
                   f"{middle[index] - fine[index]:.2f} mm): no order")
 
 
-STUDIES = {"wall": wall_study, "stiff": stiff_study, "examples": examples_study, "cells": cells_study}
+def richardson(coarse, middle, fine):
+    """(observed order p, extrapolated value q*) from q at h, h/2, h/4; (nan, nan) when the
+    differences change sign (not in the asymptotic range)."""
+    ratio = (coarse - middle) / (middle - fine) if middle != fine else math.nan
+    if not ratio > 0:
+        return math.nan, math.nan
+    order = math.log2(ratio)
+    return order, fine + (fine - middle) / (2 ** order - 1)
+
+
+def example_cells_study(names=("retaining_wall", "pile_driving", "column_collapse")):
+    """Each example at its cell h, h/2, h/4 (ppc 2, the shipped cfl) and at h with ppc 3: each
+    headline quantity at its last time, the observed order, the Richardson value and the
+    shipped cell's error against it."""
+    import jaxmpm
+
+    print("\n### Examples under cell refinement (shipped cfl; the last output time of the dt study)\n")
+    print("| example | quantity | h | h/2 | h/4 | h, ppc 3 | order | Richardson value | error of h | runs [s] |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    durations = {"retaining_wall": 0.4, "pile_driving": 0.2, "column_collapse": 1.0}
+    for name in names:
+        base = jaxmpm.load_scene(ROOT / "examples" / f"{name}.toml").with_value("scene.duration", durations[name])
+        cell = base.grid.cell
+        found, seconds = [], 0.0
+        for factor, ppc in ((1, base.numerics.ppc), (2, base.numerics.ppc), (4, base.numerics.ppc), (1, 3)):
+            scene = base.with_value("grid.cell", cell / factor).with_value("numerics.ppc", ppc)
+            try:
+                t, probes, steps, spent = run(scene)
+            except jaxmpm.SimulationError as error:
+                print(f"| {name} | (failed at h/{factor}, ppc {ppc}: {error}) | | | | | | | | |")
+                found.append(None)
+                continue
+            seconds += spent
+            found.append({quantity: values[-1] for quantity, values in example_quantities(name, t, probes).items()})
+            print(f"<!-- {name} h/{factor} ppc {ppc}: {steps} steps, {spent:.0f} s -->", flush=True)
+        if any(values is None for values in found[:3]):
+            continue
+        for quantity in found[0]:
+            q = [values[quantity] if values is not None else math.nan for values in found]
+            order, extrapolated = richardson(*q[:3])
+            error = f"{100 * abs(q[0] - extrapolated) / abs(extrapolated):.1f} %" if math.isfinite(extrapolated) else "–"
+            print(f"| {name} | {quantity} | {q[0]:.4g} | {q[1]:.4g} | {q[2]:.4g} | {q[3]:.4g} | "
+                  f"{order:.2f} | {extrapolated:.4g} | {error} | {seconds:.0f} |", flush=True)
+
+
+STUDIES = {"wall": wall_study, "stiff": stiff_study, "examples": examples_study, "cells": cells_study,
+           "example_cells": example_cells_study}
 
 
 def main():
@@ -248,6 +385,9 @@ def main():
         if name == "examples":
             examples_study(tuple(arguments.examples or ("retaining_wall", "pile_driving", "column_collapse")),
                            tuple(arguments.relaxation or (0.0, None)))
+            continue
+        if name == "example_cells":
+            example_cells_study(tuple(arguments.examples or ("retaining_wall", "pile_driving", "column_collapse")))
             continue
         STUDIES[name]()
         sys.stdout.flush()

@@ -40,7 +40,7 @@ from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps, stat
 from jaxmpm.scene import Scene
 from jaxmpm.seeding import padded, seed_bodies
 from jaxmpm.solver import (
-    BodyBlock, Structure, kept_grid_bytes, kept_solve_bytes, make_step, transfer_memory,
+    BodyBlock, Structure, body_memory, kept_grid_bytes, kept_solve_bytes, make_step, transfer_memory,
 )
 from jaxmpm.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
 from jaxmpm.time_step import exceeds, material_limits, time_stepping
@@ -127,9 +127,12 @@ class Simulation:
             self.seeds = padded(self.seeds, self.mesh.devices.size)
         self.time = np.arange(self.steps + 1) * self.dt
         field, fields, interfaces = velocity_fields(scene)
+        memory = transfer_memory(scene.transfer, scene.numerics.flip, scene.numerics.relaxation, self.dt,
+                                 slowest_crossing_time(scene))
         blocks = tuple(
             BodyBlock(body.name, body.material, scene.material_of(body).law, start, stop, field[body.name],
-                      body.kinematics.type, body.kinematics.time, *self.outline_of(body, start, stop))
+                      body.kinematics.type, body.kinematics.time, *self.outline_of(body, start, stop),
+                      memory=body_memory(memory, scene.material_of(body).law, scene.transfer, scene.numerics.relaxation))
             for body, (start, stop) in zip(scene.bodies, self.seeds.slices)
         )
         self.structure = Structure(
@@ -138,8 +141,7 @@ class Simulation:
             gravity=scene.gravity,
             dt=self.dt,
             transfer=scene.transfer,
-            memory=transfer_memory(scene.transfer, scene.numerics.flip, scene.numerics.relaxation,
-                                   self.dt, slowest_crossing_time(scene)),
+            memory=memory,
             damping=scene.numerics.damping,
             update=scene.numerics.update,
             bodies=blocks,

@@ -77,7 +77,9 @@ class BodyBlock:
     [material_name]); kinematics: "free" | "prescribed" | "rigid"; times: the prescribed
     velocity table's times [s] (None: a constant velocity); outline: a prescribed or rigid
     body's region as convex polygon corners, counter-clockwise, at t = 0 (None: not convex, or a
-    free body), and outline_centre the mean of its points then (`bodies.keep_points_outside`)."""
+    free body), and outline_centre the mean of its points then (`bodies.keep_points_outside`);
+    memory: the fraction of its own velocity update its points keep per step, where it differs
+    from the scene's `Structure.memory` (`body_memory`)."""
 
     name: str
     material_name: str
@@ -89,6 +91,7 @@ class BodyBlock:
     times: tuple[float, ...] | None = None
     outline: tuple | None = None
     outline_centre: tuple[float, float] | None = None
+    memory: float | None = None
 
     @property
     def points(self):
@@ -234,14 +237,14 @@ def update_grid_velocity(nodes, dt, damping, constrain, floor):
 def grid_to_particles(particles, stencil, velocity_old, velocity_new, field, memory, dt, layout, derivatives="any"):
     """Points take the new grid velocity of their field and move: x_p <- x_p + dt sum N_I v_I.
 
-    Their velocity keeps a fraction `memory` (static) of their own FLIP update, the rest is
-    the grid's: v_p <- sum N_I v_I + memory (v_p + sum N_I dv_I - sum N_I v_I). With
-    transfer = "flip", memory = flip (per step); with "apic", memory = exp(-dt / tau) (see
-    `transfer_memory`), and C_p is set with the velocity gradient in `make_step`.
-    derivatives: see `Structure`.
+    Their velocity keeps a fraction `memory` (static: a float, or (N, 1) per point) of their
+    own FLIP update, the rest is the grid's: v_p <- sum N_I v_I + memory (v_p + sum N_I dv_I -
+    sum N_I v_I). With transfer = "flip", memory = flip (per step); with "apic", memory =
+    exp(-dt / tau) (see `transfer_memory`, `body_memory`), and C_p is set with the velocity
+    gradient in `make_step`. derivatives: see `Structure`.
     """
     support = stencil.weights.shape[1]
-    blend = memory > 0.0     # static: without memory only v_I is gathered
+    blend = bool(np.any(np.asarray(memory) > 0.0))     # static: without memory only v_I is gathered
     nodal = jnp.concatenate([velocity_new, velocity_new - velocity_old], axis=-1) if blend else velocity_new
     gathered = gather_from_nodes(layout, stencil.base, nodal, support, field, derivatives)
     at_points = sum_over_stencil(stencil.weights[..., None] * gathered, derivatives)
@@ -394,9 +397,33 @@ def transfer_memory(transfer, flip, relaxation, dt, crossing_time):
     return math.exp(-dt / (relaxation * crossing_time))
 
 
+def body_memory(memory, law, transfer, relaxation):
+    """A free body's transfer memory: the scene's `memory` (`transfer_memory`), except that with
+    APIC and a relaxation (relaxation > 0) the points of a body that cannot yield (`law.yields`,
+    e.g. an elastic structure) keep their own velocity (1). The relaxation damps the velocity
+    noise of flowing soil; on an elastic body it would pull the points towards the APIC
+    velocity, whose affine part comes from the re-mapped velocities and does not hold the
+    rotation of a body a few cells thick (a stiff elastic wall lost 6 % of its motion against
+    the rigid wall; docs/convergence.md)."""
+    if transfer == "apic" and relaxation > 0.0 and not law.yields:
+        return 1.0
+    return memory
+
+
+def point_memory(structure):
+    """Each point's transfer memory: the scene's float when every body keeps it, else a static
+    (N, 1) array of each body's (`BodyBlock.memory`)."""
+    memories = [structure.memory if block.memory is None else block.memory for block in structure.bodies]
+    if all(memory == structure.memory for memory in memories):
+        return structure.memory
+    return np.concatenate([np.full((block.stop - block.start, 1), memory)
+                           for block, memory in zip(structure.bodies, memories)])
+
+
 def make_step(structure: Structure):
     """The pure step function of a scene: step(params, state) -> (state, diagnostics)."""
     layout, dt = structure.layout, structure.dt
+    memory = point_memory(structure)
     fields = None
     if structure.fields > 1:   # each point's velocity field, a compile-time constant
         fields = np.concatenate([np.full(b.stop - b.start, b.field, np.int32) for b in structure.bodies])
@@ -430,7 +457,7 @@ def make_step(structure: Structure):
             velocity_new = constrain(velocity_new)
         start = particles.x
         particles = jax.named_call(grid_to_particles, name="grid_to_particles")(
-            particles, stencil, velocity_old, velocity_new, field, structure.memory, dt, layout, structure.derivatives
+            particles, stencil, velocity_old, velocity_new, field, memory, dt, layout, structure.derivatives
         )
         state, reactions = move_kinematic_bodies(state.replace(particles=particles), start, structure, motions, impulses)
         state = keep_points_outside(state, structure, motions)

@@ -55,11 +55,15 @@ def material_parameters(material):
 class Law(abc.ABC):
     """What the solver compiles of a material: its static options only (a frozen dataclass),
     every physical value read from `params`. Required: `init_state`, `update`, `wave_speed`.
-    Optional, with its default here: `kept_solves_per_point`."""
+    Optional, with their defaults here: `kept_solves_per_point`, `yields`."""
 
     # Values per point that `update` solves an implicit equation for and names
     # `rollout.KEPT_SOLVES` (a checkpointed step keeps them); counted in reverse mode's memory.
     kept_solves_per_point = 0
+    # Whether the material can yield and flow. The transfer's relaxation (numerics.relaxation)
+    # damps the velocity noise of flowing bodies; the points of a body that cannot flow keep
+    # their own velocity (`solver.body_memory`).
+    yields = True
 
     @abc.abstractmethod
     def init_state(self, count, dtype) -> dict:

@@ -71,6 +71,8 @@ def p_wave_speed(params):
 class ElasticLaw(Law):
     """The static side of `LinearElastic`: no options, so one compiled update for every value."""
 
+    yields = False
+
     def init_state(self, count, dtype):
         """History variables: only the accumulated plastic strain (always zero here)."""
         return {"plastic_strain": jnp.zeros((count,), dtype)}
