@@ -85,7 +85,7 @@ def scheme_of(sim, params) -> Scheme:
     (block,) = structure.bodies
     law = block.law
     supported = (structure.layout.shape_name == "bspline2", structure.transfer == "apic", structure.update == "musl",
-                 structure.fields == 1, not structure.damping, not structure.axisymmetric, block.kinematics == "free",
+                 structure.fields == 1, not structure.damped, not structure.axisymmetric, block.kinematics == "free",
                  type(law).__name__ == "DruckerPragerLaw", law.cone == "paper", not law.viscoplastic)
     assert all(supported), f"the reference kernel runs bspline2 + APIC + MUSL Drucker-Prager only: {supported}"
     material = {name: float(value) for name, value in params["materials"][block.material_name].items()}
@@ -94,7 +94,7 @@ def scheme_of(sim, params) -> Scheme:
     bulk = young / (3.0 * (1.0 - 2.0 * poisson))
     return Scheme(
         origin=tuple(layout.origin), cell=layout.cell, nodes=layout.nodes,
-        boundaries=dataclasses.asdict(structure.boundaries), gravity=tuple(structure.gravity), dt=structure.dt,
+        boundaries=dataclasses.asdict(structure.boundaries), gravity=tuple(float(g) for g in params["scene"]["gravity"]), dt=structure.dt,
         bulk=bulk, shear=young / (2.0 * (1.0 + poisson)),
         slope=paper_cone(material["friction_angle"]), dilation_slope=paper_cone(material["dilation_angle"]),
         floor=MASS_FLOOR * float(np.max(np.asarray(sim.initial_state(params).particles.mass))),

@@ -54,19 +54,19 @@ def main():
     floor = solver.MASS_FLOOR * jnp.max(state.particles.mass)
     particles = state.particles
     stencil = layout.stencil(particles.x)
-    nodes = solver.particles_to_grid(particles, stencil, None, None, structure)
-    v_old, v_new = solver.update_grid_velocity(nodes, dt, structure.damping, constrain, floor)
+    nodes = solver.particles_to_grid(particles, stencil, None, None, structure, params["scene"]["gravity"])
+    v_old, v_new = solver.update_grid_velocity(nodes, dt, None, constrain, floor)
     moved = solver.grid_to_particles(particles, stencil, v_old, v_new, None, structure.memory, dt, layout)
     remapped = solver.remap_velocity(moved, stencil, None, structure, nodes.mass, constrain, floor)
     gradient = solver.velocity_gradient(stencil, remapped, None, structure, particles.x)
 
     phases = {
         "stencil": (lambda x: layout.stencil(x)[1:], (particles.x,)),
-        "particles_to_grid": (lambda p, w, g: solver.particles_to_grid(p, stencil._replace(weights=w, gradients=g), None, None, structure)[:3],
+        "particles_to_grid": (lambda p, w, g: solver.particles_to_grid(p, stencil._replace(weights=w, gradients=g), None, None, structure, params["scene"]["gravity"])[:3],
                               (particles, stencil.weights, stencil.gradients)),
-        "update_grid": (lambda n: solver.update_grid_velocity(n, dt, structure.damping, constrain, floor), (nodes,)),
-        "grid_to_particles": (lambda p, w, vo, vn: solver.grid_to_particles(p, stencil._replace(weights=w), vo, vn, None, structure.transfer,
-                                                                         structure.flip, dt, layout),
+        "update_grid": (lambda n: solver.update_grid_velocity(n, dt, None, constrain, floor), (nodes,)),
+        "grid_to_particles": (lambda p, w, vo, vn: solver.grid_to_particles(p, stencil._replace(weights=w), vo, vn, None, structure.memory,
+                                                                         dt, layout),
                               (particles, stencil.weights, v_old, v_new)),
         "remap_velocity": (lambda p, w, m: solver.remap_velocity(p, stencil._replace(weights=w), None, structure, m, constrain, floor),
                            (moved, stencil.weights, nodes.mass)),

@@ -73,9 +73,10 @@ def check_stable_over_bounds(experiment, space: ParameterSpace, index: int):
                  for name, values in base["materials"].items()}
     for material_name in materials:
         values = dict(materials[material_name])
-        for entry, (namespace, owner, key) in space.fitted_in(index):
-            if namespace != "materials" or owner != material_name or key not in extremes:
+        for entry, location in space.fitted_in(index):
+            if location[:2] != ("materials", material_name) or len(location) != 3 or location[2] not in extremes:
                 continue
+            key = location[2]
             bound = getattr(entry, extremes[key])
             if bound is None:
                 raise SceneError(f"fit.{entry.path} needs a {extremes[key]} bound: the time step is fixed "

@@ -30,7 +30,7 @@ import numpy as np
 from inverse.observations import Observations, check_against, default_scale, load_observations
 from jaxmpm.ensembles import spread_over_devices
 from jaxmpm.errors import SceneError
-from jaxmpm.parameters import resolve, with_values
+from jaxmpm.parameters import resolve, value_at, with_values
 
 
 def as_observations(source, sigma: dict | None = None, label: str = "observations") -> Observations:
@@ -132,8 +132,7 @@ def base_parameters(experiment: Experiment):
         raise SceneError(f"experiments.{experiment.name}.set: {error}") from None
     params = sim.cast(params)
     for name, value in fixed.items():
-        namespace, owner, key = resolve(sim.params, name)
-        expected = np.shape(sim.params[namespace][owner][key])
+        expected = np.shape(value_at(sim.params, resolve(sim.params, name)))
         if value.shape != expected:
             raise SceneError(f"experiments.{experiment.name}.set.{name} has shape {value.shape}; the parameter has {expected}.")
     sim.check_time_step(params)

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmpm.errors import SceneError
-from jaxmpm.parameters import resolve, with_values
+from jaxmpm.parameters import location_name, resolve, value_at, with_values
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,7 +85,7 @@ class ParameterSpace:
         self.templates = templates
         self.template = templates[0]
         self.entries = []
-        self.placements = [[] for _ in templates]   # per experiment: (entry index, (namespace, owner, key))
+        self.placements = [[] for _ in templates]   # per experiment: (entry index, location from `resolve`)
         for path, spec in fit.items():
             found, first_error, value = [], None, None
             for experiment, template in enumerate(templates):
@@ -95,10 +95,11 @@ class ParameterSpace:
                     first_error = first_error or error
                     continue
                 if any(location == placed for _, placed in self.placements[experiment]):
-                    raise SceneError(f"fit names {path!r} twice (as {'.'.join(location)}).")
-                here = np.asarray(template[location[0]][location[1]][location[2]])
+                    raise SceneError(f"fit names {path!r} twice (as {location_name(location)}).")
+                here = np.asarray(value_at(template, location))
                 if here.shape != ():
-                    raise SceneError(f"fit names {path!r}, which is not a single number (shape {here.shape}).")
+                    raise SceneError(f"fit names {path!r}, which is not a single number (shape {here.shape}): "
+                                     f"name one component, e.g. '{path}[0]'.")
                 value = here if value is None else value
                 found.append((experiment, location))
             if not found:
@@ -139,7 +140,7 @@ class ParameterSpace:
         """A copy of an experiment's parameter pytree with the fitted values (P,) it has
         replaced (differentiable)."""
         params = self.templates[experiment] if params is None else params
-        return with_values(params, {".".join(location): values[index] for index, location in self.placements[experiment]})
+        return with_values(params, {location_name(location): values[index] for index, location in self.placements[experiment]})
 
     def random_values(self, count, seed):
         """`count` start vectors drawn uniformly inside the bounds (1-99 % of the range;

@@ -98,8 +98,7 @@ def spin_velocity(spin, arm):
 def free_motions(params, state, structure, time_new):
     """{body: PrescribedStep or RigidStep}: each prescribed body's velocity over the step, and
     each rigid body's frame with the motion it would end the step with if nothing touched it."""
-    dtype = state.particles.x.dtype
-    gravity = jnp.asarray(structure.gravity, dtype)
+    gravity = params["scene"]["gravity"]
     dt = structure.dt
     motions = {}
     for block in structure.blocks_of("prescribed"):
@@ -225,16 +224,16 @@ def received_impulses(structure, impulses):
     return received
 
 
-def move_kinematic_bodies(state, start, structure, motions, impulses):
+def move_kinematic_bodies(state, start, structure, motions, impulses, gravity):
     """Prescribed points move at their velocity from their positions `start` (N, 2) at the
     start of the step; rigid bodies move as one body with their solved velocity and spin
     (the points turn by dt omega about the centre of mass, which moves by dt V).
 
-    Returns (state, reactions {prescribed body: (2,) force that kept it on its path})."""
+    Returns (state, reactions {prescribed body: (2,) force that kept it on its path, gravity
+    (2,) taken off})."""
     particles, dt = state.particles, structure.dt
     x, v, rigid = particles.x, particles.v, dict(state.rigid)
     received = received_impulses(structure, impulses)
-    gravity = jnp.asarray(structure.gravity, x.dtype)
     reactions = {}
     for block in structure.blocks_of("prescribed"):
         before, after = motions[block.name]

@@ -138,11 +138,10 @@ class Simulation:
         self.structure = Structure(
             layout=GridLayout(scene.grid.origin, scene.grid.cell, scene.grid.cells, scene.numerics.shape, scene.numerics.ppc),
             boundaries=scene.grid.boundaries,
-            gravity=scene.gravity,
             dt=self.dt,
             transfer=scene.transfer,
             memory=memory,
-            damping=scene.numerics.damping,
+            damped=bool(scene.numerics.damping),
             update=scene.numerics.update,
             bodies=blocks,
             fields=fields,
@@ -289,7 +288,8 @@ class Simulation:
     def initial_state(self, params=None) -> State:
         """The state at t = 0: seeded points at rest (or at their body's velocity; prescribed
         bodies at their velocity at t = 0), zero stress or geostatic; rigid bodies not yet
-        moved. Masses follow params["materials"][material]["density"], so gradients reach it."""
+        moved. Masses follow params["materials"][material]["density"] and geostatic stresses also
+        params["scene"]["gravity"], so gradients reach them."""
         params = self.cast(self.params if params is None else params)
         count, dtype = len(self.seeds.positions), self.dtype
         masses, velocities, stresses, histories, rigid = [], [], [], [], {}
@@ -303,7 +303,7 @@ class Simulation:
                 velocity = params["bodies"][block.name]["velocity"]
                 velocity = velocity if block.times is None else velocity[0]
             velocities.append(jnp.broadcast_to(velocity, (size, 2)))
-            stresses.append(self.body_initial_stress(body, block, material))
+            stresses.append(self.body_initial_stress(body, block, material, params["scene"]["gravity"]))
             histories.append(block.law.init_state(size, dtype))
             if block.kinematics == "rigid":
                 zero = jnp.zeros((), dtype)
@@ -320,9 +320,9 @@ class Simulation:
         )
         return self.place(State(particles=particles, rigid=rigid, **counters_at_start()))
 
-    def body_initial_stress(self, body, block, material):
+    def body_initial_stress(self, body, block, material, gravity):
         """(n_body, 4) initial stress of one body (`Particles.stress_voigt`): zero, or
-        geostatic from its params."""
+        geostatic from its material's params and the gravity (2,) of params["scene"]."""
         size = block.stop - block.start
         if body.initial_stress is None:
             return jnp.zeros((size, 4), self.dtype)
@@ -330,7 +330,7 @@ class Simulation:
         k0 = jaky_k0(material["friction_angle"]) if k0 == "jaky" else k0
         spacing = self.scene.grid.cell / self.scene.numerics.ppc
         depth = depth_below_top(self.seeds.positions[block.points], spacing, self.scene.grid.origin[0])
-        return geostatic_stress(jnp.asarray(depth, self.dtype), material["density"], self.scene.gravity[1], k0)
+        return geostatic_stress(jnp.asarray(depth, self.dtype), material["density"], gravity[1], k0)
 
     # ------------------------------------------------------------------ differentiable
 

@@ -43,8 +43,9 @@ per unit time, and so the result, no longer depends on dt.
 
 `make_step(structure)` closes over the static structure and returns a pure
 `step(params, state) -> (state, diagnostics)`; every physical value comes from `params`
-(namespaced: params["materials"], params["contacts"], params["bodies"]); the diagnostics are
-what probes read beyond the points (contact forces, reactions).
+(namespaced: params["materials"], params["contacts"], params["bodies"], params["scene"]
+(gravity), params["numerics"] (damping); `jaxmpm.parameters`), the structure decides only which
+code exists; the diagnostics are what probes read beyond the points (contact forces, reactions).
 """
 
 import dataclasses
@@ -102,9 +103,10 @@ class BodyBlock:
 class Structure:
     """Everything static about a scene: changing any field compiles a new step.
 
-    layout: the grid; boundaries: edge conditions; gravity (2,) [m/s^2]; dt [s];
+    layout: the grid; boundaries: edge conditions; dt [s];
     transfer: "flip" | "apic"; memory: the fraction of each point's own (FLIP) velocity update
-    it keeps per step (`grid_to_particles`); damping: local (Cundall) damping coefficient; update:
+    it keeps per step (`grid_to_particles`); damped: whether the step has local (Cundall)
+    damping (its coefficient is params["numerics"]["damping"]); update:
     "musl" | "usl"; bodies: the contiguous body blocks; fields: number of velocity fields on
     the grid; interfaces: the pairs of fields that meet (`contact.Interface`); point_spacing:
     h / ppc [m] (a rigid body's points are squares of this side); axisymmetric: x is the
@@ -117,11 +119,10 @@ class Structure:
 
     layout: GridLayout
     boundaries: object
-    gravity: tuple[float, float]
     dt: float
     transfer: str
     memory: float
-    damping: float
+    damped: bool
     update: str
     bodies: tuple[BodyBlock, ...]
     fields: int = 1
@@ -163,7 +164,7 @@ class Nodes(NamedTuple):
     mass_gradient: jax.Array | None
 
 
-def particles_to_grid(particles, stencil, offsets, field, structure):
+def particles_to_grid(particles, stencil, offsets, field, structure, gravity):
     """Node mass m_I, momentum p_I, force f_I = sum_p (m_p N_I g - V_p sigma_p . grad N_I) and,
     with contact pairs, the mass gradient sum_p m_p grad N_I, each point into its own field.
     With APIC (`offsets`: x_I - x_p and y_I - y_p, (N, s, s) each) the momentum is
@@ -174,7 +175,6 @@ def particles_to_grid(particles, stencil, offsets, field, structure):
     values are read as whole columns (`components`, `entries`), never indexed one by one."""
     mass, volume = particles.mass, particles.volume
     weighted = per_point(mass) * stencil.weights
-    gravity = structure.gravity
     sigma_xx, sigma_yy, sigma_zz, sigma_xy = components(particles.stress_voigt)
     sigma = [[sigma_xx, sigma_xy], [sigma_xy, sigma_yy]]
     velocity = components(particles.v)
@@ -225,10 +225,10 @@ def local_damping(force, velocity, coefficient):
 
 def update_grid_velocity(nodes, dt, damping, constrain, floor):
     """Nodal velocities before and after M a = F (trial: before any contact), with the edge
-    conditions applied."""
+    conditions applied; `damping` the local damping coefficient (None: undamped, no code)."""
     velocity_old = constrain(safe_velocity(nodes.momentum, nodes.mass, floor))
     force = nodes.force
-    if damping:
+    if damping is not None:
         force = local_damping(force, velocity_old, damping)
     velocity_new = constrain(safe_velocity(nodes.momentum + dt * force, nodes.mass, floor))
     return velocity_old, velocity_new
@@ -442,9 +442,13 @@ def make_step(structure: Structure):
         if structure.transfer == "apic":
             offsets = layout.node_offsets(stencil.base, particles.x, stencil.weights.shape[1])
         frictions = {name: values["friction"] for name, values in params.get("contacts", {}).items()}
-        nodes = jax.named_call(particles_to_grid, name="particles_to_grid")(particles, stencil, offsets, field, structure)
+        gravity = params["scene"]["gravity"]
+        damping = params["numerics"]["damping"] if structure.damped else None
+        nodes = jax.named_call(particles_to_grid, name="particles_to_grid")(
+            particles, stencil, offsets, field, structure, gravity
+        )
         velocity_old, velocity_new = jax.named_call(update_grid_velocity, name="update_grid")(
-            nodes, dt, structure.damping, constrain, floor
+            nodes, dt, damping, constrain, floor
         )
         time_new = (state.step + 1).astype(particles.x.dtype) * dt
         grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, nodes.mass > floor)
@@ -459,7 +463,8 @@ def make_step(structure: Structure):
         particles = jax.named_call(grid_to_particles, name="grid_to_particles")(
             particles, stencil, velocity_old, velocity_new, field, memory, dt, layout, structure.derivatives
         )
-        state, reactions = move_kinematic_bodies(state.replace(particles=particles), start, structure, motions, impulses)
+        state, reactions = move_kinematic_bodies(state.replace(particles=particles), start, structure, motions, impulses,
+                                                 gravity)
         state = keep_points_outside(state, structure, motions)
         particles = state.particles
         if structure.update == "musl":
