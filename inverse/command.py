@@ -16,7 +16,7 @@ class CalibrateCommand:
 
     @staticmethod
     def add_arguments(parser):
-        parser.add_argument("config", help="calibration file (TOML; keys: docs/scene_reference.md)")
+        parser.add_argument("config", help="calibration file (TOML; keys: docs/calibration_reference.md)")
         parser.add_argument("-o", "--output", help="fit HDF5 file (default: CONFIG name with .h5)")
         parser.add_argument("--resume", action="store_true", help="continue from OUTPUT.checkpoint.npz")
         parser.add_argument("--keep-checkpoint", action="store_true",

@@ -160,6 +160,13 @@ def test_the_scene_reference_is_current():
     assert reference.PAGE.read_text() == reference.markdown()
 
 
+def test_the_calibration_reference_is_current():
+    # docs/calibration_reference.md likewise (python -m inverse.reference).
+    from inverse import reference
+
+    assert reference.PAGE.read_text() == reference.markdown()
+
+
 def test_a_scene_file_that_is_not_utf8_is_one_clear_error(tmp_path):
     path = tmp_path / "latin1.toml"
     path.write_bytes(BLOCK.replace('name = "block"', 'name = "bl\xf6ck"').encode("latin-1"))

@@ -1,7 +1,7 @@
 """docs/scene_reference.md, generated from the schemas: `python -m jaxmpm.scene.reference`.
 
-The scene file's keys (`jaxmpm.scene.schema.SCENE_FILE`, the materials' own keys) and the
-calibration file's (`inverse.config.CALIBRATION_FILE`). tests/test_scene.py regenerates the
+The scene file's keys (`jaxmpm.scene.schema.SCENE_FILE`, the materials' own keys); the
+calibration file has its own page (`inverse.reference`). tests/test_scene.py regenerates the
 page and compares, so it cannot fall behind the code.
 """
 
@@ -14,7 +14,7 @@ from jaxmpm.scene.schema import SCENE_FILE
 PAGE = Path(__file__).resolve().parents[2] / "docs" / "scene_reference.md"
 
 INTRO = """\
-# Scene and calibration file reference
+# Scene file reference
 
 Generated from the schemas in the code (`python -m jaxmpm.scene.reference`; a test checks
 that this page is current). Units are SI, angles in degrees. A key given where it does not
@@ -25,7 +25,8 @@ an explicit `dt` below the stable limit, the axisymmetric restrictions — are l
 
 Kinds: `[x, y]` a pair of numbers, `[[x, y], ...]` a list of pairs; in the allowed column
 `(a, b]` is an interval (a excluded, b included). "—" means absent: the meaning says what
-happens then.
+happens then. The calibration file's keys are in
+[calibration_reference.md](calibration_reference.md).
 
 # The scene file (`jaxmpm run SCENE.toml`)
 """
@@ -55,18 +56,19 @@ CHECKS = """\
 
 
 def markdown() -> str:
-    from inverse.config import CALIBRATION_FILE
-
-    lines = [INTRO] + reference_tables(SCENE_FILE, "", "")[2:]
-    lines += [CHECKS, "# The calibration file (`jaxmpm calibrate CONFIG.toml -o FIT.h5`)", ""]
-    lines += reference_tables(CALIBRATION_FILE, "CONFIG.toml", "")[2:]
+    lines = [INTRO] + reference_tables(SCENE_FILE, "", "")[2:] + [CHECKS]
     return "\n".join(lines).rstrip() + "\n"
 
 
-def main(argv=None):
-    target = Path((argv or sys.argv[1:] or [PAGE])[0])
-    target.write_text(markdown())
+def write_page(default, text, argv=None):
+    """Write `text` to the path in argv (or `default`) and say so."""
+    target = Path((argv or sys.argv[1:] or [default])[0])
+    target.write_text(text)
     print(f"wrote {target}")
+
+
+def main(argv=None):
+    write_page(PAGE, markdown(), argv)
 
 
 if __name__ == "__main__":
