@@ -258,9 +258,20 @@ def export_command(arguments):
     output = output_path(arguments.output, arguments.result, ".pvd")
     if output.suffix.lower() != ".pvd":
         raise SceneError(f"-o {str(output)!r}: the file type must be .pvd.")
-    export_paraview(result, output, arguments.revolve)
+    export_paraview(result, output, arguments.revolve, report=say_large_export)
     print(f"wrote {output} and its VTU files in {output.with_suffix('')}")
     return 0
+
+
+LARGE_EXPORT = 100e6      # bytes: an export this large is announced before it is written
+
+
+def say_large_export(size, files):
+    """On stderr, before anything is written: how large an export of `files` VTU files can be
+    (`export.export_bytes`: before compression)."""
+    if size >= LARGE_EXPORT:
+        print(f"jaxmpm: writing up to {readable_bytes(size)} in {files} VTU files (before compression; "
+              "fewer snapshots or a smaller --revolve write less)", file=sys.stderr)
 
 
 COMMANDS = {"run": run_command, "check": check_command, "plot": plot_command, "export": export_command}

@@ -85,6 +85,15 @@ def point_data(snapshots, index, revolve=None):
     return data
 
 
+def export_bytes(snapshots, revolve=None) -> int:
+    """The VTU files' size before compression: per snapshot, the points (3 float64 each), their
+    vertex cells (connectivity and offset, int64, and a type byte) and the point data. The
+    files are zlib-compressed, so they are smaller, by how much depends on the fields."""
+    points = len(snapshots.body_number) * (revolve or 1)
+    data = sum(values.nbytes for values in point_data(snapshots, 0, revolve).values())
+    return len(snapshots) * (points * (3 * 8 + 2 * 8 + 1) + data)
+
+
 def write_vtu(path, positions, data):
     """One snapshot's points ((N, 2), placed at z = 0, or (N, 3)) as VTK vertex cells, written
     atomically."""
@@ -115,15 +124,19 @@ def check_revolve(snapshots, revolve):
         raise SceneError(f"--revolve {revolve}: give a whole number of angles, at least 3.")
 
 
-def export_paraview(result, path, revolve=None) -> Path:
+def export_paraview(result, path, revolve=None, report=None) -> Path:
     """Write `path` (.pvd) and its folder of VTU files for a `Result`; returns the PVD path.
-    `revolve=N` (axisymmetric runs) writes each point at N angles about the axis (see above)."""
+    `revolve=N` (axisymmetric runs) writes each point at N angles about the axis (see above).
+    `report(bytes, files)`, if given, is told before anything is written how large the export
+    can be (`export_bytes`), so that a command can say so."""
     path = Path(path)
     snapshots = Snapshots(result)
     check_revolve(snapshots, revolve)
     folder = path.with_suffix("")
     if folder.exists() and not folder.is_dir():
         raise SceneError(f"-o {str(path)!r}: its VTU folder {str(folder)!r} exists and is not a folder.")
+    if report is not None:
+        report(export_bytes(snapshots, revolve), len(snapshots))
     folder.mkdir(exist_ok=True)
     entries = []
     for index, time in enumerate(snapshots.times):

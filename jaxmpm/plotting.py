@@ -69,14 +69,34 @@ def check_mirror(snapshots, mirror):
                          "this run is plane strain.")
 
 
+STRUCTURE_COLOUR = "0.62"    # prescribed and rigid bodies, where the field is a material state
+
+
+def describes_material_state(snapshots, field):
+    """Whether `field` is a stress measure or the plastic strain, which prescribed and rigid
+    bodies (no stress update) do not have."""
+    return field in ("p", "q", "plastic_strain") or field in snapshots.components
+
+
+def coloured_points(snapshots, field):
+    """(N,) mask of the points coloured by `field`: all of them, except the points of prescribed
+    and rigid bodies where the field is a material state (drawn in STRUCTURE_COLOUR)."""
+    if describes_material_state(snapshots, field):
+        return snapshots.deforming
+    return np.ones_like(snapshots.deforming)
+
+
+def mirrored(positions, mirror):
+    """The positions, followed with `mirror` by their mirror images (-r, z)."""
+    return np.concatenate([positions, positions * np.array([-1.0, 1.0])]) if mirror else positions
+
+
 def placed(snapshots, field, index, mirror):
-    """(positions (N, 2), values (N,)) to draw; with `mirror`, followed by the mirror images
-    (-r, z) of the points with the same values."""
-    positions, values = snapshots.positions(index), snapshots.field(field, index)
-    if mirror:
-        positions = np.concatenate([positions, positions * np.array([-1.0, 1.0])])
-        values = np.concatenate([values, values])
-    return positions, values
+    """(positions (n, 2), values (n,)) of the coloured points to draw (`coloured_points`);
+    with `mirror`, followed by their mirror images (-r, z) with the same values."""
+    shown = coloured_points(snapshots, field)
+    positions, values = snapshots.positions(index)[shown], snapshots.field(field, index)[shown]
+    return mirrored(positions, mirror), np.concatenate([values, values]) if mirror else values
 
 
 def draw_points(axes, snapshots, field, index, limits, mirror=False):
@@ -94,6 +114,9 @@ def draw_points(axes, snapshots, field, index, limits, mirror=False):
     figure.canvas.draw()                        # axes size in pixels is known after a draw
     pixels_per_metre = axes.get_window_extent().width / (right - left)
     side = grid.cell / snapshots.scene.numerics.ppc * pixels_per_metre * 72.0 / figure.dpi
+    structure = mirrored(snapshots.positions(index)[~coloured_points(snapshots, field)], mirror)
+    if len(structure):
+        axes.scatter(structure[:, 0], structure[:, 1], c=STRUCTURE_COLOUR, s=side**2, marker="s", linewidths=0)
     positions, values = placed(snapshots, field, index, mirror)
     artist = axes.scatter(
         positions[:, 0], positions[:, 1], c=values, s=side**2, marker="s",
@@ -111,10 +134,29 @@ def figure_size(scene, mirror=False):
     return 9.0, min(9.0, max(3.0, 7.0 * aspect + 1.2))
 
 
+ROBUST_PERCENTILES = (1.0, 99.0)    # a few extreme points (a pile's tip) must not set the whole scale
+
+
 def colour_limits(snapshots, field, indices):
-    values = np.concatenate([snapshots.field(field, index) for index in indices])
-    low, high = float(np.min(values)), float(np.max(values))
+    """(low, high) of the colour scale over the coloured points of the snapshots `indices`:
+    their 1st and 99th percentiles, so that a handful of extreme points do not wash out the
+    rest (the colour bar's ends then say the scale is clipped, `colour_extension`)."""
+    shown = coloured_points(snapshots, field)
+    values = np.concatenate([snapshots.field(field, index)[shown] for index in indices])
+    if values.size == 0:
+        return 0.0, 1.0
+    low, high = (float(value) for value in np.percentile(values, ROBUST_PERCENTILES, method="nearest"))
     return (low, high) if high > low else (low - 0.5, high + 0.5)
+
+
+def colour_extension(snapshots, field, indices, limits):
+    """The colour bar's `extend`: "min", "max" or "both" where coloured values lie beyond the
+    limits, else "neither"."""
+    shown = coloured_points(snapshots, field)
+    values = np.concatenate([snapshots.field(field, index)[shown] for index in indices])
+    below = values.size and np.min(values) < limits[0]
+    above = values.size and np.max(values) > limits[1]
+    return {(True, True): "both", (True, False): "min", (False, True): "max"}.get((bool(below), bool(above)), "neither")
 
 
 def snapshot_figure(result, field=None, snapshot=-1, mirror=False, ax=None):
@@ -130,8 +172,10 @@ def snapshot_figure(result, field=None, snapshot=-1, mirror=False, ax=None):
         figure, axes = pyplot().subplots(figsize=figure_size(snapshots.scene, mirror), layout="constrained")
     else:
         figure, axes = ax.figure, ax
-    artist = draw_points(axes, snapshots, field, index, colour_limits(snapshots, field, [index]), mirror)
-    figure.colorbar(artist, ax=axes, label=f"{field} [{field_unit(snapshots, field)}]")
+    limits = colour_limits(snapshots, field, [index])
+    artist = draw_points(axes, snapshots, field, index, limits, mirror)
+    figure.colorbar(artist, ax=axes, label=f"{field} [{field_unit(snapshots, field)}]",
+                    extend=colour_extension(snapshots, field, [index], limits))
     axes.set_title(f"{snapshots.scene.name}: t = {snapshots.times[index]:.4g} s")
     return figure
 
@@ -163,15 +207,20 @@ def save_animation(result, path, field=None, fps=10, mirror=False):
     snapshots = Snapshots(result)
     check_mirror(snapshots, mirror)
     field = field or default_field(snapshots)
-    limits = colour_limits(snapshots, field, range(len(snapshots)))
+    frames = range(len(snapshots))
+    limits = colour_limits(snapshots, field, frames)
     figure, axes = plt.subplots(figsize=figure_size(snapshots.scene, mirror), layout="constrained")
     artist = draw_points(axes, snapshots, field, 0, limits, mirror)
-    figure.colorbar(artist, ax=axes, label=f"{field} [{field_unit(snapshots, field)}]")
+    structure = axes.collections[0] if len(axes.collections) > 1 else None
+    figure.colorbar(artist, ax=axes, label=f"{field} [{field_unit(snapshots, field)}]",
+                    extend=colour_extension(snapshots, field, frames, limits))
 
     def frame(index):
         positions, values = placed(snapshots, field, index, mirror)
         artist.set_offsets(positions)
         artist.set_array(values)
+        if structure is not None:
+            structure.set_offsets(mirrored(snapshots.positions(index)[~coloured_points(snapshots, field)], mirror))
         axes.set_title(f"{snapshots.scene.name}: t = {snapshots.times[index]:.4g} s")
         return (artist,)
 

@@ -56,6 +56,9 @@ class Snapshots:
         self.stored = {field: [np.asarray(result.snapshots[body][field]) for body in self.bodies] for field in fields}
         counts = [per_body.shape[1] for per_body in self.stored[fields[0]]] if fields else []
         self.body_number = np.repeat(np.arange(len(counts)), counts)
+        # prescribed and rigid bodies have no stress update: their stress and plastic strain say nothing
+        deforms = [self.scene.body_named(name).kinematics.type == "free" for name in self.bodies]
+        self.deforming = np.repeat(np.asarray(deforms, bool), counts)
 
     @functools.cached_property
     def seeded_positions(self):

@@ -224,6 +224,30 @@ def test_plot_and_export_user_errors_exit_2_with_one_line(two_bodies, axisymmetr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["clash", "cut.h5", "notes.h5", "other.h5"]   # nothing written
 
 
+def test_a_large_export_is_announced_with_its_size_before_it_is_written(two_bodies, tmp_path, capsys, monkeypatch):
+    # `export --revolve 24` wrote 928 MB without a word. The bound said first is the files'
+    # size before compression: above what is written, and exact with compression turned off.
+    from jaxmpm import cli
+
+    _, path = two_bodies
+    assert main(["export", str(path), "-o", str(tmp_path / "small.pvd")]) == 0
+    assert "writing up to" not in capsys.readouterr().err          # below the threshold: quiet
+    monkeypatch.setattr(cli, "LARGE_EXPORT", 1.0)
+    assert main(["export", str(path), "-o", str(tmp_path / "big.pvd")]) == 0
+    said = capsys.readouterr().err
+    files = sorted((tmp_path / "big").glob("*.vtu"))
+    assert f"in {len(files)} VTU files" in said
+    number, unit = said.split("writing up to ")[1].split()[:2]
+    announced = float(number) * {"kB": 1e3, "MB": 1e6, "GB": 1e9}[unit]
+    assert announced >= sum(file.stat().st_size for file in files)
+    import meshio
+
+    raw = [meshio.read(file) for file in files]
+    uncompressed = sum(mesh.points.nbytes + sum(c.data.nbytes for c in mesh.cells) * 2 + len(mesh.points)
+                       + sum(values.nbytes for values in mesh.point_data.values()) for mesh in raw)
+    assert announced == pytest.approx(uncompressed, rel=0.01)
+
+
 def test_export_again_replaces_its_own_files_and_leaves_others(two_bodies, tmp_path):
     result, _ = two_bodies
     folder = tmp_path / "run"
@@ -268,15 +292,38 @@ def test_mirror_plot_shows_the_whole_diametral_section(axisymmetric, tmp_path):
     axes = figure.axes[0]
     right = jaxmpm.Scene.from_toml(CYLINDER).grid.size[0]
     assert axes.get_xlim() == (-right, right)
-    points, section = axes.collections[0], joined(result, "x", 1, RING)
+    # the held cap has no stress update: drawn grey, and only the cylinder is coloured
+    cap, points, section = *axes.collections, result.snapshots["cylinder"]["x"][1]
+    np.testing.assert_array_equal(cap.get_offsets(), np.concatenate([result.snapshots["cap"]["x"][1]] * 2) * np.repeat(
+        [[1.0, 1.0], [-1.0, 1.0]], len(result.snapshots["cap"]["x"][1]), axis=0))
     np.testing.assert_array_equal(points.get_offsets(), np.concatenate([section, section * [-1.0, 1.0]]))
-    hoop = joined(result, "stress", 1, RING)[:, 2, 2]
+    hoop = result.snapshots["cylinder"]["stress"][1][:, 2, 2]
     np.testing.assert_array_equal(points.get_array(), np.concatenate([hoop, hoop]))
     plotting.pyplot().close(figure)
     assert main(["plot", str(path), "--mirror", "-o", str(tmp_path / "whole.png")]) == 0
     assert Image.open(tmp_path / "whole.png").size[0] > 100
     assert main(["plot", str(path), "--mirror", "-o", str(tmp_path / "whole.gif")]) == 0
     assert Image.open(tmp_path / "whole.gif").n_frames == len(result.snapshots["time"])
+
+
+def test_structures_are_grey_and_a_few_extreme_points_do_not_set_the_colour_scale(axisymmetric):
+    # The pile example's pressure plot was scaled to a few crushed points at its tip, and drew
+    # the pile (no stress update) in the sand's colours.
+    result, _ = axisymmetric
+    figure = result.plot(field="p", snapshot=1)
+    cap, cylinder = figure.axes[0].collections
+    np.testing.assert_array_equal(cap.get_offsets(), result.snapshots["cap"]["x"][1])
+    assert cap.get_array() is None                      # one colour, not the field's
+    np.testing.assert_array_equal(cylinder.get_offsets(), result.snapshots["cylinder"]["x"][1])
+    plotting.pyplot().close(figure)
+    assert len(result.plot(field="displacement", snapshot=1).axes[0].collections) == 1   # a motion: every body coloured
+    snapshots = Snapshots(result)
+    ordinary = plotting.colour_limits(snapshots, "p", [1])
+    snapshots.stored["stress"][0] = snapshots.stored["stress"][0].copy()     # the fixture's arrays stay
+    snapshots.stored["stress"][0][1][0] = -1e9 * np.eye(3)       # one point crushed: p = 1 GPa
+    limits = plotting.colour_limits(snapshots, "p", [1])
+    assert limits[1] < 1e-3 * 1e9 and limits[1] == pytest.approx(ordinary[1], rel=0.2)
+    assert plotting.colour_extension(snapshots, "p", [1], limits) in ("max", "both")
 
 
 def test_revolved_export_turns_points_vectors_and_stresses_about_the_axis(axisymmetric, tmp_path):

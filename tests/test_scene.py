@@ -258,3 +258,20 @@ def test_a_body_and_its_material_may_share_a_name_in_set():
         scene.with_value("sand.colour", 1.0)
     params = jaxmpm.parameters.scene_parameters(scene)
     assert float(jaxmpm.with_values(params, {"sand.friction_angle": 31.0})["materials"]["sand"]["friction_angle"]) == 31.0
+
+
+def test_a_time_step_given_with_a_courant_number_is_said_to_win(tmp_path, capsys):
+    # `dt` and `cfl` together were accepted silently; dt decides, and the note says so with the
+    # Courant number it amounts to.
+    from jaxmpm.cli import main
+
+    scene = jaxmpm.Scene.from_toml(BLOCK)
+    assert scene.notes == ()
+    chosen = dataclasses.replace(scene, dt=0.5 * scene.stable_dt, cfl=0.2)
+    (note,) = chosen.notes
+    assert "scene.cfl = 0.2 is not used" in note and "dt is 0.5 of the stable limit" in note
+    assert 0.9 * chosen.dt < jaxmpm.Simulation(chosen).dt <= chosen.dt     # (shortened to land on the outputs)
+    path = tmp_path / "both.toml"
+    path.write_text(chosen.to_toml())
+    assert main(["check", str(path)]) == 0
+    assert "note: scene.dt" in capsys.readouterr().err

@@ -68,6 +68,7 @@ DEFAULT_PRESET = "balanced"
 # examples, and says why it is not yet the default (undamped elastic bodies keep vibrating, and
 # creep on slopes; a point that leaves a granular flow glides on a no-slip base).
 DEFAULT_RELAXATION = 0.0
+DEFAULT_CFL = 0.4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -225,7 +226,7 @@ class Scene:
     name: str = "scene"
     geometry: str = "plane_strain"
     gravity: tuple[float, float] = (0.0, -9.81)
-    cfl: float = 0.4
+    cfl: float = DEFAULT_CFL
     dt: float | None = None
     output_every: float | None = None
     snapshot_fields: tuple[str, ...] = ("x", "stress", "plastic_strain")
@@ -305,11 +306,15 @@ class Scene:
 
     @property
     def notes(self) -> tuple[str, ...]:
-        """Sentences on choices made for this scene that its file does not state."""
+        """Sentences on choices made for this scene that its file does not state, or states twice."""
+        notes = []
         if self.transfer != self.numerics.transfer:
-            return ("the fast preset's FLIP transfer lets frictional contact creep, so this scene with contact "
-                    "pairs runs with transfer = 'apic' (set numerics.transfer to choose)",)
-        return ()
+            notes.append("the fast preset's FLIP transfer lets frictional contact creep, so this scene with contact "
+                         "pairs runs with transfer = 'apic' (set numerics.transfer to choose)")
+        if self.dt is not None and self.cfl != DEFAULT_CFL:
+            notes.append(f"scene.dt = {self.dt:g} s is given, so scene.cfl = {self.cfl:g} is not used: that dt is "
+                         f"{self.dt / self.stable_dt:.3g} of the stable limit {self.stable_dt:.4g} s")
+        return tuple(notes)
 
     @property
     def output_interval(self) -> float:
