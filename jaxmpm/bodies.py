@@ -1,5 +1,13 @@
 """Prescribed and rigid bodies on the grid: how each kind meets the free fields in a step.
 
+Each kind (`Prescribed`, `Rigid`; `KINDS`) answers the same questions, so the step's phases
+(`impose_body_motions`, `move_kinematic_bodies`, `keep_points_outside`) hold no kind `if`s:
+its motion over the step if nothing touched it (`free_motion`), its velocity at given
+positions (`velocity_at`: imposed on its field's nodes, and the surface free points are kept
+off), how its points move from the impulses its field received (`moved`), and where its
+outline is now (`outline_now`). The impulses themselves come from `contact`; a rigid body's
+motion is solved with them (`solve_rigid_motions`).
+
 A prescribed body moves on its given path: its field's nodes take its velocity, it acts as
 infinitely heavy in contact, and the impulse it receives is reported as the reaction that
 kept it on its path.
@@ -95,31 +103,102 @@ def spin_velocity(spin, arm):
     return jnp.stack([-spin * arm[..., 1], spin * arm[..., 0]], axis=-1)
 
 
-def free_motions(params, state, structure, time_new):
-    """{body: PrescribedStep or RigidStep}: each prescribed body's velocity over the step, and
-    each rigid body's frame with the motion it would end the step with if nothing touched it."""
-    gravity = params["scene"]["gravity"]
-    dt = structure.dt
-    motions = {}
-    for block in structure.blocks_of("prescribed"):
+def turned_by(angle, arms):
+    """(n, 2) arms rotated counter-clockwise by `angle` [rad]."""
+    cos, sin = jnp.cos(angle), jnp.sin(angle)
+    return jnp.stack([cos * arms[:, 0] - sin * arms[:, 1], sin * arms[:, 0] + cos * arms[:, 1]], axis=-1)
+
+
+class Prescribed:
+    """A body moved on its given path (params["bodies"][name]["velocity"]): what the step asks
+    of each kind of kinematic body, for this kind."""
+
+    @staticmethod
+    def free_motion(params, state, block, structure, time_new):
+        """Its velocity at the start and at the end of the step (PrescribedStep)."""
         velocity = params["bodies"][block.name]["velocity"]
-        before = prescribed_velocity(block, velocity, time_new - dt)
-        motions[block.name] = PrescribedStep(before, prescribed_velocity(block, velocity, time_new))
-    for block in structure.blocks_of("rigid"):
+        before = prescribed_velocity(block, velocity, time_new - structure.dt)
+        return PrescribedStep(before, prescribed_velocity(block, velocity, time_new))
+
+    @staticmethod
+    def velocity_at(motion, positions, dt):
+        """Its velocity at `positions` (..., 2) during the step: the same everywhere."""
+        return jnp.broadcast_to(motion.after, positions.shape)
+
+    @staticmethod
+    def moved(block, state, start, motion, received, structure, gravity):
+        """(x, v of its points, its reaction, its RigidMotion (None)): the points move at its
+        velocity from `start`; the reaction is the force that kept it on its path,
+        m (v_after - v_before) / dt - m g - J / dt for the impulse J its field `received`."""
+        before, after = motion
+        mass = jnp.sum(state.particles.mass[block.points])
+        total = 0.0 if received is None else jnp.sum(received, axis=(0, 1))
+        reaction = mass * (after - before) / structure.dt - mass * gravity - total / structure.dt
+        count = block.stop - block.start
+        return start[block.points] + structure.dt * after, jnp.broadcast_to(after, (count, 2)), reaction, None
+
+    @staticmethod
+    def outline_now(block, state, corners, centre):
+        """Its outline's corners now: shifted as the mean of its points moved."""
+        return corners + (jnp.mean(state.particles.x[block.points], axis=0) - centre)
+
+
+class Rigid:
+    """A body that moves as one under gravity and the impulses of its interfaces, solved with
+    them in `solve_rigid_motions`: what the step asks of each kind, for this kind."""
+
+    @staticmethod
+    def free_motion(params, state, block, structure, time_new):
+        """Its frame and the motion it would end the step with if nothing touched it (RigidStep)."""
         mass, centre, inertia = rigid_body_frame(state.particles, block, structure.point_spacing)
         motion = state.rigid[block.name]
-        motions[block.name] = RigidStep(mass, centre, inertia, motion.velocity + dt * gravity, motion.spin)
-    return motions
+        return RigidStep(mass, centre, inertia, motion.velocity + structure.dt * params["scene"]["gravity"], motion.spin)
+
+    @staticmethod
+    def velocity_at(motion, positions, dt):
+        """V + omega e_z x (x - c - dt V) at `positions` (..., 2): its velocity field with the
+        centre of mass where it is `dt` into the step."""
+        return motion.velocity + spin_velocity(motion.spin, positions - motion.centre - dt * motion.velocity)
+
+    @staticmethod
+    def moved(block, state, start, motion, received, structure, gravity):
+        """(x, v of its points, no reaction, its RigidMotion): the points turn by dt omega
+        about the centre of mass, which moves by dt V."""
+        dt, rigid = structure.dt, state.rigid[block.name]
+        turn = dt * motion.spin
+        turned = turned_by(turn, start[block.points] - motion.centre)
+        updated = rigid.replace(translation=rigid.translation + dt * motion.velocity, rotation=rigid.rotation + turn,
+                                velocity=motion.velocity, spin=motion.spin)
+        return (motion.centre + dt * motion.velocity + turned, motion.velocity + spin_velocity(motion.spin, turned),
+                None, updated)
+
+    @staticmethod
+    def outline_now(block, state, corners, centre):
+        """Its outline's corners now: turned and moved as the body was (state.rigid)."""
+        motion = state.rigid[block.name]
+        return centre + motion.translation + turned_by(motion.rotation, corners - centre)
+
+
+KINDS = {"prescribed": Prescribed, "rigid": Rigid}   # the kinematic body kinds; "free" bodies have no motion
+
+
+def kinematic_blocks(structure):
+    """The prescribed and rigid bodies' blocks, in scene order."""
+    return tuple(block for block in structure.bodies if block.kinematics in KINDS)
+
+
+def free_motions(params, state, structure, time_new):
+    """{body: PrescribedStep or RigidStep}: each kinematic body's motion over the step if
+    nothing touched it (`free_motion` of its kind)."""
+    return {block.name: KINDS[block.kinematics].free_motion(params, state, block, structure, time_new)
+            for block in kinematic_blocks(structure)}
 
 
 def impose_kinematic_fields(velocity, structure, motions, positions):
-    """Node velocities of prescribed fields set to their velocity, of rigid fields to their
-    motion V + omega x (x_I - c)."""
-    for block in structure.blocks_of("prescribed"):
-        velocity = velocity.at[block.field].set(jnp.broadcast_to(motions[block.name].after, velocity.shape[1:]))
-    for block in structure.blocks_of("rigid"):
-        rigid = motions[block.name]
-        velocity = velocity.at[block.field].set(rigid.velocity + spin_velocity(rigid.spin, positions - rigid.centre))
+    """Node velocities of each kinematic body's field set to the body's velocity at the nodes
+    (`velocity_at` of its kind, at the start of the step's frame: dt = 0)."""
+    for block in kinematic_blocks(structure):
+        velocity = velocity.at[block.field].set(KINDS[block.kinematics].velocity_at(motions[block.name], positions, 0.0))
     return velocity
 
 
@@ -225,37 +304,23 @@ def received_impulses(structure, impulses):
 
 
 def move_kinematic_bodies(state, start, structure, motions, impulses, gravity):
-    """Prescribed points move at their velocity from their positions `start` (N, 2) at the
-    start of the step; rigid bodies move as one body with their solved velocity and spin
-    (the points turn by dt omega about the centre of mass, which moves by dt V).
+    """Each kinematic body's points moved from their positions `start` (N, 2) at the start of
+    the step as its kind says (`moved`): prescribed points on their path, rigid bodies as one.
 
     Returns (state, reactions {prescribed body: (2,) force that kept it on its path, gravity
     (2,) taken off})."""
-    particles, dt = state.particles, structure.dt
+    particles = state.particles
     x, v, rigid = particles.x, particles.v, dict(state.rigid)
     received = received_impulses(structure, impulses)
     reactions = {}
-    for block in structure.blocks_of("prescribed"):
-        before, after = motions[block.name]
-        mass = jnp.sum(particles.mass[block.points])
-        impulse = received.get(block.field)
-        total = 0.0 if impulse is None else jnp.sum(impulse, axis=(0, 1))
-        reactions[block.name] = mass * (after - before) / dt - mass * gravity - total / dt
-        count = block.stop - block.start
-        x = x.at[block.points].set(start[block.points] + dt * after)
-        v = v.at[block.points].set(jnp.broadcast_to(after, (count, 2)))
-    for block in structure.blocks_of("rigid"):
-        body, motion = motions[block.name], state.rigid[block.name]
-        turn = dt * body.spin
-        cos, sin = jnp.cos(turn), jnp.sin(turn)
-        arm = start[block.points] - body.centre
-        turned = jnp.stack([cos * arm[:, 0] - sin * arm[:, 1], sin * arm[:, 0] + cos * arm[:, 1]], axis=-1)
-        x = x.at[block.points].set(body.centre + dt * body.velocity + turned)
-        v = v.at[block.points].set(body.velocity + spin_velocity(body.spin, turned))
-        rigid[block.name] = motion.replace(
-            translation=motion.translation + dt * body.velocity, rotation=motion.rotation + turn,
-            velocity=body.velocity, spin=body.spin,
-        )
+    for block in kinematic_blocks(structure):
+        moved_x, moved_v, reaction, motion = KINDS[block.kinematics].moved(
+            block, state, start, motions[block.name], received.get(block.field), structure, gravity)
+        x, v = x.at[block.points].set(moved_x), v.at[block.points].set(moved_v)
+        if reaction is not None:
+            reactions[block.name] = reaction
+        if motion is not None:
+            rigid[block.name] = motion
     return state.replace(particles=particles.replace(x=x, v=v), rigid=rigid), reactions
 
 
@@ -277,17 +342,10 @@ def convex_outline(vertices):
 
 def outline_now(block, state, dtype):
     """(K, 2) corners of a prescribed or rigid body's outline at the state's time: its scene
-    region moved as its points moved (prescribed: the shift of their mean; rigid: its
-    translation and rotation about its centre of mass)."""
+    region moved as its points moved (`outline_now` of its kind)."""
     corners = jnp.asarray(block.outline, dtype)
     centre = jnp.asarray(block.outline_centre, dtype)
-    if block.kinematics == "prescribed":
-        return corners + (jnp.mean(state.particles.x[block.points], axis=0) - centre)
-    motion = state.rigid[block.name]
-    cos, sin = jnp.cos(motion.rotation), jnp.sin(motion.rotation)
-    arm = corners - centre
-    turned = jnp.stack([cos * arm[:, 0] - sin * arm[:, 1], sin * arm[:, 0] + cos * arm[:, 1]], axis=-1)
-    return centre + motion.translation + turned
+    return KINDS[block.kinematics].outline_now(block, state, corners, centre)
 
 
 def outline_pairs(structure):
@@ -336,11 +394,7 @@ def keep_points_outside(state, structure, motions):
         inside = depth < 0.0
         normal = normals[nearest]
         moved = jnp.where(inside[:, None], points - depth[:, None] * normal, points)
-        motion = motions[body.name]
-        if body.kinematics == "prescribed":
-            surface_velocity = jnp.broadcast_to(motion.after, points.shape)
-        else:
-            surface_velocity = motion.velocity + spin_velocity(motion.spin, moved - motion.centre - structure.dt * motion.velocity)
+        surface_velocity = KINDS[body.kinematics].velocity_at(motions[body.name], moved, structure.dt)
         velocity = v[free.points]
         approach = jnp.sum((velocity - surface_velocity) * normal, axis=1)
         velocity = jnp.where((inside & (approach < 0.0))[:, None], velocity - approach[:, None] * normal, velocity)
