@@ -506,9 +506,9 @@ def instability_hint(sim: Simulation, state: State) -> str:
     the first failure is a non-finite point, or by the state's step a point that never failed
     moves more than a cell per step (|v| dt > h), which physical motion within the CFL limit
     never does. Points that have left the grid are not judged: the grid no longer carries
-    them, and their values after leaving mean nothing. Empty when the others move within the
-    limit (a body that simply flows off a free edge, say); a clause saying both readings when
-    no point is left to judge."""
+    them, and their values after leaving mean nothing. When the others move within the limit
+    (a body that simply flows off a free edge, say), the clause says so with their largest
+    |v| dt / h; when no point is left to judge, it gives both readings."""
     flags = np.asarray(state.particles.flags)
     scene = sim.scene
     key, value = ("scene.dt", scene.dt) if scene.dt is not None else ("scene.cfl", scene.cfl)
@@ -519,11 +519,15 @@ def instability_hint(sim: Simulation, state: State) -> str:
                 f"grid, the step may be unstable, lower {key}; if it leaves through a free edge, enlarge grid.size)")
     speeds = np.hypot(*np.asarray(state.particles.v, np.float64)[judged].reshape(-1, 2).T)
     fine = np.all(np.isfinite(speeds)) and np.all(np.isfinite(np.asarray(state.particles.x)[judged]))
-    if first_left and fine and np.max(speeds, initial=0.0) * sim.dt <= scene.grid.cell:
-        return ""
+    per_step = np.max(speeds, initial=0.0) * sim.dt / scene.grid.cell     # the motion's Courant number
+    if first_left and fine and per_step <= 1.0:
+        return (f" (the points still on the grid move at most {per_step:.2g} of a cell per step: the body "
+                f"flowed off the grid; if it should stay on it, enlarge grid.size or hold that edge)")
     numerics = scene.numerics
+    seen = (f"points moved up to {per_step:.3g} cells per step" if fine
+            else "points went non-finite")
     return (
-        f" (by then points moved more than a cell per step or went non-finite: the step is unstable "
+        f" (by then {seen}: the step is unstable "
         f"with {key} = {value:g}, numerics.shape = {numerics.shape!r}, transfer = {scene.transfer!r}, "
         f"update = {numerics.update!r}; lower {key} or change the numerics, see docs/stability.md)"
     )

@@ -104,7 +104,8 @@ def test_an_unstable_step_stops_with_a_message_naming_step_point_body_and_cause(
     assert caught.value.result is not None
     assert not caught.value.result.complete
     pattern = (r"^the run stopped at step (\d+) \(t = [0-9.e-]+ s\): point \d+ of body 'column' "
-               r"(left the grid|became non-finite); .*the step is unstable with scene.cfl = 1, "
+               r"(left the grid|became non-finite); .* \(by then (points moved up to [0-9.e+]+ cells per step|points "
+               r"went non-finite): the step is unstable with scene.cfl = 1, "
                r"numerics.shape = 'linear', transfer = 'flip', update = 'usl'; lower scene.cfl")
     match = re.search(pattern, message)
     assert match, message
@@ -141,6 +142,11 @@ def test_a_body_leaving_the_grid_at_its_own_speed_is_not_called_unstable(speed):
         assert "enlarge grid.size" in str(caught.value)
     else:
         assert "unstable" not in str(caught.value)
+        # the largest |v| dt / h of the points still on the grid: the body's own speed, plus
+        # what the points that lost their support at the edge picked up (well below a cell)
+        sim = jaxmpm.Simulation(scene)
+        measured = float(re.search(r"move at most ([0-9.e-]+) of a cell per step", str(caught.value)).group(1))
+        assert speed * sim.dt / scene.grid.cell <= measured < 2 * speed * sim.dt / scene.grid.cell
 
 
 @pytest.fixture(scope="module")
