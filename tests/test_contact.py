@@ -477,13 +477,13 @@ def test_thrust_and_reaction_gradients_match_finite_differences():
 def test_fields_and_parameters_follow_the_scene():
     sim = Simulation(small_active_wall())
     assert sim.structure.fields == 2 and len(sim.structure.interfaces) == 1
-    assert set(sim.params) == {"materials", "contacts", "bodies"}
+    assert set(sim.params) == {"materials", "contacts", "bodies", "scene"}
     assert sim.params["contacts"] == {"backfill/wall": {"friction": 0.3}}
     assert sim.params["bodies"]["wall"]["velocity"].shape == (4, 2)
     single = Simulation(dataclasses.replace(sliding_block(30.0, 0.3), contacts=(), probes=(),
                                             bodies=(sliding_block(30.0, 0.3).bodies[1],)))
     assert single.structure.fields == 1 and single.structure.interfaces == ()
-    assert set(single.params) == {"materials"}
+    assert set(single.params) == {"materials", "scene"}
 
 
 def test_scenes_with_several_fields_compile_with_their_options_and_the_same_numbers():
