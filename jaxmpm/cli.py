@@ -14,7 +14,10 @@ complete = false); 2 user error (one line naming the key and value, never a trac
 from __future__ import annotations
 
 import argparse
+import contextlib
+import importlib
 import os
+import signal
 import sys
 import tomllib
 from pathlib import Path
@@ -120,7 +123,7 @@ def run_command(arguments):
         return 1
     except KeyboardInterrupt:
         print(f"jaxmpm: interrupted; partial output written to {output} (continue with --resume)", file=sys.stderr)
-        return 130
+        return INTERRUPTED
     print(f"wrote {output}")
     return 0
 
@@ -277,11 +280,37 @@ def say_large_export(size, files):
 COMMANDS = {"run": run_command, "check": check_command, "plot": plot_command, "export": export_command}
 
 
+INTERRUPTED = 130
+
+
+@contextlib.contextmanager
+def interrupts_end_quietly():
+    """While starting (JAX importing: about a second, nothing made yet to keep), Ctrl-C or
+    SIGTERM ends the program at once with one line and status 130. (A KeyboardInterrupt
+    raised there can land in one of JAX's garbage-collector callbacks, which swallows it.)"""
+    def leave(signum, frame):
+        os.write(2, b"jaxmpm: interrupted\n")
+        os._exit(INTERRUPTED)
+
+    previous = {sig: signal.signal(sig, leave) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def main(argv=None):
     arguments = build_parser().parse_args(argv)
-    command = COMMANDS.get(arguments.command) or plugged_commands()[arguments.command].run
+    with interrupts_end_quietly():
+        importlib.import_module("jax")      # the slow part of starting
+
+        command = COMMANDS.get(arguments.command) or plugged_commands()[arguments.command].run
     try:
         return command(arguments)
+    except KeyboardInterrupt:       # outside a run's own handling (which says what it kept)
+        print("jaxmpm: interrupted", file=sys.stderr)
+        return INTERRUPTED
     except SceneError as error:
         print(f"jaxmpm: error: {one_line(str(error))}", file=sys.stderr)
         return USER_ERROR

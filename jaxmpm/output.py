@@ -1,14 +1,16 @@
 """A forward run's HDF5 file, written output by output as the run goes, and resumed from.
 
-The layout is `Result.save`'s (jaxmpm/results.py) with resizable datasets: after every output
-interval the new probe rows and the new snapshot are appended and the file is flushed, so it
-is valid and readable while the run goes (`complete = false` until the end) and memory does
-not grow with the run. Beside them `/resume` holds what continuing needs: the full state
+The layout is `Result.save`'s (jaxmpm/results.py) with resizable datasets: after every chunk
+of steps (`Simulation.chunk`, well under a second of work) its probe rows are appended, after
+every output interval the new snapshot, and the file is flushed each time, so it is valid and
+readable while the run goes (`complete = false` until the end) and memory does not grow with
+the run. Beside them `/resume` holds what continuing needs: the full state
 (points, material history, rigid motions, counters) of the last output written, in two slots
 written in turn (`resume_slot` names the valid one, so a write cut short never spoils it),
 the parameters and the initial positions. `steps_done` counts the steps whose probe rows are
-in the file; a failed run may hold rows past the resumable state (up to the step before the
-failure), which a resumed run drops before continuing.
+in the file; a failed or interrupted run may hold rows past the resumable state (up to the
+step before the failure, or the last chunk done), which a resumed run drops before
+continuing (and computes again, to the same numbers).
 
 The file is first written under a temporary name and renamed once it holds the first
 snapshot and state: an existing file of the same name is replaced only by a valid one.
@@ -188,10 +190,16 @@ class RunFile:
             _append(self.file["probes"][name], np.asarray(value)[:rows])
         _append(self.file["time"], self.sim.time[done + 1 : done + 1 + rows])
         self.file.attrs["steps_done"] = done + rows
+        self.file.flush()                   # on disk: what an interrupt or a reader finds
 
     def append_output(self, values: dict, snapshot: dict, state, outputs: int):
         """One output interval: its probe rows, its snapshot, and the state to resume from."""
         self.append_rows(values)
+        self.append_snapshot(snapshot, state, outputs)
+
+    def append_snapshot(self, snapshot: dict, state, outputs: int):
+        """The snapshot at the end of output interval `outputs` (its rows already appended),
+        and the state to resume from."""
         snapshots = self.file["snapshots"]
         _append(snapshots["time"], [outputs * self.sim.steps_per_output * self.sim.dt])
         for body, (start, stop) in zip(self.sim.scene.bodies, self.sim.body_slices):
@@ -213,17 +221,22 @@ class RunFile:
 @contextlib.contextmanager
 def deferred_interrupts():
     """Ctrl-C (SIGINT) and SIGTERM during a run set `stop["requested"]`, which the run checks
-    between output intervals (so a file is never left half-appended); a second signal
-    interrupts at once. Outside the main thread signals cannot be caught: no change there."""
-    stop = {"requested": False}
+    after each compiled chunk of steps (`Simulation.chunk`, well under a second); a second
+    signal interrupts at once, except while the file is being appended to (`uninterrupted`),
+    which it waits for, so a file is never left half-written. Outside the main thread signals
+    cannot be caught: no change there."""
+    stop = {"requested": False, "writing": False, "pending": False}
     if threading.current_thread() is not threading.main_thread():
         yield stop
         return
 
     def handler(signum, frame):
-        if stop["requested"]:
+        if not stop["requested"]:
+            stop["requested"] = True
+        elif stop["writing"]:
+            stop["pending"] = True
+        else:
             raise KeyboardInterrupt
-        stop["requested"] = True
 
     previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -231,3 +244,16 @@ def deferred_interrupts():
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
+
+
+@contextlib.contextmanager
+def uninterrupted(stop):
+    """A block (appending to the output file) that a second signal does not cut short: it
+    interrupts as soon as the block is done (`deferred_interrupts`)."""
+    stop["writing"] = True
+    try:
+        yield
+    finally:
+        stop["writing"] = False
+    if stop["pending"]:
+        raise KeyboardInterrupt

@@ -34,7 +34,7 @@ from jaxmpm.keys import is_concrete
 from jaxmpm.materials.base import material_parameters
 from jaxmpm.parameters import scene_parameters
 from jaxmpm.probes import make_probes
-from jaxmpm.output import RunFile, deferred_interrupts
+from jaxmpm.output import RunFile, deferred_interrupts, uninterrupted
 from jaxmpm.results import FileSnapshots, Result
 from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps, state_bytes
 from jaxmpm.scene import Scene
@@ -55,6 +55,18 @@ def check_dtype(scene: Scene):
             "jax.config.update('jax_enable_x64', True) at the start of the program "
             "(the jaxmpm command does), or set numerics.dtype = 'float32'."
         )
+
+
+CHUNK_POINT_STEPS = 1e6   # point-steps per compiled call of a run: 0.1-0.5 s on a 2-core CPU (1-8 M/s)
+
+
+def chunk_length(steps_per_output: int, points: int) -> int:
+    """Steps per compiled call of `Simulation.run`: the largest divisor of the output
+    interval whose point-steps stay within CHUNK_POINT_STEPS (at least 1 step), so that an
+    interrupt is acted on, the progress bar moves and the file grows within about a second
+    at any scene size, while small scenes still run a whole interval per call."""
+    most = max(1, int(CHUNK_POINT_STEPS // max(points, 1)))
+    return max(d for d in range(1, min(most, steps_per_output) + 1) if steps_per_output % d == 0)
 
 
 def slowest_crossing_time(scene: Scene) -> float:
@@ -154,7 +166,8 @@ class Simulation:
         self.observe = make_probes(scene, self.seeds)
         self._probes = jax.jit(self._probes_from_state)    # also nested in callers' jits: XLA's defaults
         self.compiled_cache = {}     # compiled work built on this simulation (e.g. calibrations)
-        self._advance = jit_with_options(self._advance_one_output, several_fields=self.several_fields)
+        self.chunk = chunk_length(self.steps_per_output, self.point_count)   # steps per compiled call of `run`
+        self._advance = jit_with_options(self._advance_chunk, several_fields=self.several_fields)
         self._variants = {}         # the same simulation for other `derivatives` (`for_derivatives`)
 
     def forward_only(self) -> "Simulation":
@@ -182,7 +195,7 @@ class Simulation:
             variant.step = make_step(variant.structure)
             variant._probes = jax.jit(variant._probes_from_state)
             variant.compiled_cache = {}
-            variant._advance = jit_with_options(variant._advance_one_output, several_fields=variant.several_fields)
+            variant._advance = jit_with_options(variant._advance_chunk, several_fields=variant.several_fields)
             variant._variants = {}
             self._variants[derivatives] = variant
         return self._variants[derivatives]
@@ -413,9 +426,10 @@ class Simulation:
 
     # ------------------------------------------------------------------ forward runs
 
-    def _advance_one_output(self, params, state, initial_x):
+    def _advance_chunk(self, params, state, initial_x):
+        """`chunk` steps and their probe rows: the compiled unit of `run`."""
         advance = self._advance_and_observe(params, initial_x)
-        return scan_steps(advance, state, self.steps_per_output)
+        return scan_steps(advance, state, self.chunk)
 
     def run(self, params=None, initial=None, progress=True, save_to=None, resume=False):
         """Forward run with a progress bar; see `simulate`."""
@@ -453,32 +467,33 @@ class Simulation:
 
         bar = progress_bar(progress, total=self.steps, initial=done * self.steps_per_output, unit="step",
                            desc=self.scene.name)
+        chunks = self.steps_per_output // self.chunk
         with deferred_interrupts() as stop:
             try:
                 for output in range(done, self.outputs):
-                    with collector_paused():
-                        state, values = self._advance(params, state, initial_x)
-                    error_step = int(state.error_step)
-                    if error_step >= 0:
-                        keep = error_step - output * self.steps_per_output - 1
-                        steps_done[0] += keep
-                        for name, value in values.items():
-                            probes[name].append(np.asarray(value)[:keep])
-                        if writer is not None:
-                            writer.append_rows(values, keep)
-                        message = describe_failure(self, state)
-                        raise SimulationError(message, finish(False, message))
-                    steps_done[0] += self.steps_per_output
-                    for name, value in values.items():
-                        probes[name].append(np.asarray(value))
+                    for _ in range(chunks):
+                        with collector_paused():
+                            state, values = self._advance(params, state, initial_x)
+                        error_step = int(state.error_step)
+                        rows = self.chunk if error_step < 0 else error_step - steps_done[0] - 1
+                        with uninterrupted(stop):
+                            for name, value in values.items():
+                                probes[name].append(np.asarray(value)[:rows])
+                            if writer is not None:
+                                writer.append_rows(values, rows)
+                            steps_done[0] += rows
+                        bar.update(rows)
+                        if error_step >= 0:
+                            message = describe_failure(self, state)
+                            raise SimulationError(message, finish(False, message))
+                        if stop["requested"] and steps_done[0] < self.steps:
+                            raise KeyboardInterrupt
                     snapshot = snapshot_fields(state.particles, initial_x, fields)
-                    if writer is None:
-                        snapshots.append(snapshot)
-                    else:
-                        writer.append_output(values, snapshot, state, output + 1)
-                    bar.update(self.steps_per_output)
-                    if stop["requested"] and output + 1 < self.outputs:
-                        raise KeyboardInterrupt
+                    with uninterrupted(stop):
+                        if writer is None:
+                            snapshots.append(snapshot)
+                        else:
+                            writer.append_snapshot(snapshot, state, output + 1)
             except KeyboardInterrupt:
                 finish(False, f"interrupted at t = {steps_done[0] * self.dt:.6g} s")
                 raise

@@ -1,0 +1,122 @@
+"""Interrupting a run: Ctrl-C (SIGINT) or SIGTERM acts within a chunk of steps (well under a
+second) at any scene size, even in the middle of a long output interval; the file keeps every
+step done and resumes to the same result; a second signal stops at once and leaves a valid
+file."""
+
+import dataclasses
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+import jaxmpm
+from jaxmpm.simulation import chunk_length
+from tests.scenes import BLOCK
+
+# One output interval of 270,000 steps (about 8 s here): before runs were chunked, a signal
+# was acted on only at the end of it.
+LONG = BLOCK.replace("duration = 0.01", "duration = 200.0").replace("output_every = 0.005", "output_every = 200.0")
+
+
+def test_the_chunk_divides_the_output_interval_and_bounds_the_work_per_call():
+    assert chunk_length(7644, 5_100_000) == 1          # the wall at cell 1 mm: one step per call
+    assert chunk_length(7644, 32_640) == 28            # the largest divisor of 7644 within 1e6 point-steps
+    assert chunk_length(100, 1_000) == 100             # small scenes: a whole interval per call
+    assert chunk_length(97, 50_000) == 1               # a prime interval longer than the bound
+
+
+def test_a_chunked_run_gives_the_same_numbers(tmp_path, monkeypatch):
+    scene = jaxmpm.Scene.from_toml(BLOCK)
+    scene = dataclasses.replace(scene, dt=0.5 * scene.stable_dt)
+    whole = jaxmpm.Simulation(scene)
+    assert whole.chunk == whole.steps_per_output
+    divisor = next(d for d in range(2, whole.steps_per_output) if whole.steps_per_output % d == 0)
+    monkeypatch.setattr(jaxmpm.simulation, "CHUNK_POINT_STEPS", divisor * whole.point_count)
+    chunked = jaxmpm.Simulation(scene)
+    assert chunked.chunk == divisor < whole.steps_per_output
+    expected = whole.run(progress=False)
+    found = chunked.run(progress=False, save_to=tmp_path / "chunked.h5")
+    for name, values in expected.probes.items():
+        np.testing.assert_array_equal(found.probes[name], values)
+    np.testing.assert_array_equal(found.snapshots["block"]["x"][-1], expected.snapshots["block"]["x"][-1])
+
+
+def start_run(scene_path, output, *extra):
+    command = [sys.executable, "-m", "jaxmpm.cli", "run", str(scene_path), "-o", str(output), "--quiet", *extra]
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "JAXMPM_CACHE_DIR": "off"})
+
+
+def steps_in(path) -> int:
+    """steps_done of a run file that another process is writing (read without locking)."""
+    try:
+        with h5py.File(path, "r", locking=False) as file:
+            return int(file.attrs["steps_done"])
+    except (OSError, KeyError):
+        return 0
+
+
+def wait_for_steps(process, path, timeout=60.0):
+    """Until the running process has written some steps to `path`."""
+    deadline = time.monotonic() + timeout
+    while steps_in(path) == 0:
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline, "the run wrote no steps"
+        time.sleep(0.05)
+
+
+@pytest.fixture(scope="module")
+def long_scene(tmp_path_factory):
+    """(scene file, the uninterrupted run's probes) of the long-interval scene."""
+    folder = tmp_path_factory.mktemp("long")
+    path = folder / "long.toml"
+    path.write_text(LONG)
+    reference = jaxmpm.Simulation(jaxmpm.Scene.from_toml(LONG)).run(progress=False)
+    return path, reference.probes
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_stops_a_long_interval_at_once_and_the_run_resumes_to_the_same_result(long_scene, tmp_path, signum):
+    scene_path, expected = long_scene
+    output = tmp_path / "run.h5"
+    process = start_run(scene_path, output)
+    wait_for_steps(process, output)
+    signalled = time.monotonic()
+    process.send_signal(signum)
+    _, err = process.communicate(timeout=60)
+    assert time.monotonic() - signalled < 3.0            # a chunk, not the rest of the interval
+    assert process.returncode == 130 and "continue with --resume" in err
+    assert "Traceback" not in err
+    with h5py.File(output, "r") as file:
+        done = int(file.attrs["steps_done"])
+        assert not file.attrs["complete"] and "interrupted" in file.attrs["message"]
+        assert 0 < done < len(expected["top"]) - 1
+        assert len(file["probes/top"]) == done + 1        # every step done is in the file
+    if signum == signal.SIGINT:                           # (one resume is enough)
+        resumed = start_run(scene_path, output, "--resume")
+        _, err = resumed.communicate(timeout=120)
+        assert resumed.returncode == 0, err
+        result = jaxmpm.Result.load(output)
+        assert result.complete
+        for name, values in expected.items():
+            np.testing.assert_array_equal(result.probes[name], values)
+
+
+def test_a_second_signal_stops_at_once_and_leaves_a_valid_file(long_scene, tmp_path):
+    scene_path, expected = long_scene
+    output = tmp_path / "twice.h5"
+    process = start_run(scene_path, output)
+    wait_for_steps(process, output)
+    process.send_signal(signal.SIGINT)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 130 and "Traceback" not in err
+    result = jaxmpm.Result.load(output)                  # a valid file, marked incomplete
+    assert not result.complete
+    rows = len(result.probes["top"])
+    np.testing.assert_array_equal(result.probes["top"], expected["top"][:rows])
