@@ -7,13 +7,18 @@
 
 Several experiments sharing parameters: inverse.calibrate([inverse.Experiment(sim, slow, set=...),
 inverse.Experiment(sim, fast, set=...)], fit=...).
+
+Experiment design before measuring (inverse/design.py): inverse.design([inverse.Experiment(sim,
+inverse.planned_observations(sim, {"top": {"every": 0.01, "noise": 1e-4}}), set=...), ...],
+parameters={"sand.friction_angle": {"guess": 30, "low": 20, "high": 40}}, k=2).summary().
 """
 
 from inverse.calibrate import calibrate
+from inverse.design import Design, design, planned_observations
 from inverse.experiments import Experiment, as_observations
 from inverse.fit import Fit
 from inverse.observations import Channel, Observations, load_observations
 from inverse.parameters import ParameterSpace
 
-__all__ = ["Channel", "Experiment", "Fit", "Observations", "ParameterSpace", "as_observations", "calibrate",
-           "load_observations"]
+__all__ = ["Channel", "Design", "Experiment", "Fit", "Observations", "ParameterSpace", "as_observations", "calibrate",
+           "design", "load_observations", "planned_observations"]

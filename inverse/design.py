@@ -45,7 +45,7 @@ from inverse.experiments import (
     check_observations, experiments_from, group_experiments, layout_of, problem_arguments, problem_residuals,
 )
 from inverse.levenberg_marquardt import residuals_and_jacobian
-from inverse.observations import Observations
+from inverse.observations import Observations, check_against
 from inverse.parameters import ParameterSpace
 from jaxmpm.errors import SceneError
 from jaxmpm.files import atomic_path
@@ -256,7 +256,9 @@ def planned_observations(sim, probes: dict, label="probes") -> Observations:
         sigma[name] = plan["noise"]
         window[name] = plan.get("window")
     try:
-        return Observations.from_arrays(data, sigma, {k: v for k, v in window.items() if v is not None})
+        observations = Observations.from_arrays(data, sigma, {k: v for k, v in window.items() if v is not None})
+        check_against(observations, widths, (float(sim.time[0]), float(sim.time[-1])))
+        return observations
     except SceneError as error:
         raise SceneError(str(error).replace("observations.", f"{label}.", 1)) from None
 
@@ -292,7 +294,7 @@ def parameter_space(templates, parameters: dict) -> ParameterSpace:
     try:
         return ParameterSpace(templates, fit)
     except SceneError as error:
-        message = str(error)
+        message = str(error).replace("fit: in every experiment, ", "fit: ", 1)
         raise SceneError("parameters" + message[3:] if message.startswith("fit") else message) from None
 
 
