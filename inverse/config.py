@@ -164,16 +164,21 @@ def _experiment(values: dict, path: str, folder: Path) -> ExperimentConfig:
     return ExperimentConfig(values.get("name"), scene, scene_path, observations, values.get("set", {}))
 
 
-def load_calibration(path) -> CalibrationConfig:
-    path = Path(path)
+def read_toml(path: Path, kind: str = "calibration file") -> dict:
+    """The TOML table of a file (a calibration or design file), or one SceneError sentence."""
     try:
-        data = tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text())
     except OSError as error:
-        raise SceneError(f"cannot read calibration file {str(path)!r}: {error.strerror}.") from None
+        raise SceneError(f"cannot read {kind} {str(path)!r}: {error.strerror}.") from None
     except tomllib.TOMLDecodeError as error:
         raise SceneError(f"{path} is not valid TOML: {error}.") from None
     except UnicodeDecodeError:
         raise SceneError(f"{path} is not UTF-8 text.") from None
+
+
+def load_calibration(path) -> CalibrationConfig:
+    path = Path(path)
+    data = read_toml(path)
     if "grid" in data and "fit" not in data:
         raise SceneError(f"{str(path)!r} is a scene file (it has [grid]), not a calibration file: give it to "
                          "`jaxmpm run`, or name it as the scene of a calibration file (scene = \"...\").")

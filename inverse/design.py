@@ -36,7 +36,6 @@ import math
 import time as clock
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 

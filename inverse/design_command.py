@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-import tomllib
 from pathlib import Path
 
 from jaxmpm.errors import SceneError
@@ -76,18 +75,6 @@ class DesignConfig:
     options: dict           # keyword arguments of inverse.design.design
 
 
-def read_toml(path: Path) -> dict:
-    """The TOML table of a file, or one SceneError sentence."""
-    try:
-        return tomllib.loads(path.read_text())
-    except OSError as error:
-        raise SceneError(f"cannot read design file {str(path)!r}: {error.strerror}.") from None
-    except tomllib.TOMLDecodeError as error:
-        raise SceneError(f"{path} is not valid TOML: {error}.") from None
-    except UnicodeDecodeError:
-        raise SceneError(f"{path} is not UTF-8 text.") from None
-
-
 def probe_plan(values: dict, path: str) -> dict:
     """A probe table as `inverse.design.planned_observations` takes it."""
     plan = {key: values[key] for key in ("times", "every", "window") if values[key] is not None}
@@ -106,11 +93,12 @@ def load_design(path) -> DesignConfig:
     """The candidates (one jaxmpm.Simulation per scene file and scene values), parameters and
     options of a design file; every check that needs no compiling."""
     import jaxmpm
+    from inverse.config import read_toml
     from inverse.design import planned_observations
     from inverse.experiments import Experiment
 
     path = Path(path)
-    data = read_toml(path)
+    data = read_toml(path, "design file")
     if "grid" in data and "candidates" not in data:
         raise SceneError(f"{str(path)!r} is a scene file (it has [grid]), not a design file: name it as the scene "
                          "of a design file (scene = \"...\").")
