@@ -7,18 +7,48 @@ material classes.
 
 __version__ = "0.1.0"
 
-from jaxmpm.compilation_cache import use_compilation_cache
-from jaxmpm.driver import drive
-from jaxmpm.ensembles import ensemble
-from jaxmpm.errors import SceneError, SimulationError
-from jaxmpm.materials import DruckerPrager, LinearElastic
-from jaxmpm.results import Result
-from jaxmpm.parameters import with_values
-from jaxmpm.rollout import Checkpointing
-from jaxmpm.scene import (
-    Body, Boundaries, Contact, Geostatic, Grid, Kinematics, Numerics, Polygon, Probe, Rectangle, Scene, load_scene,
-)
-from jaxmpm.simulation import Simulation, simulate
+import importlib
+
+# Where each public name lives. They are imported when first used (PEP 562), so that
+# `import jaxmpm.cli` starts in milliseconds and the `jaxmpm` command can take Ctrl-C quietly
+# while JAX itself is still importing (`jaxmpm.cli.interrupts_end_quietly`).
+_PUBLIC = {
+    "use_compilation_cache": "jaxmpm.compilation_cache",
+    "drive": "jaxmpm.driver",
+    "ensemble": "jaxmpm.ensembles",
+    "SceneError": "jaxmpm.errors",
+    "SimulationError": "jaxmpm.errors",
+    "DruckerPrager": "jaxmpm.materials",
+    "LinearElastic": "jaxmpm.materials",
+    "Result": "jaxmpm.results",
+    "with_values": "jaxmpm.parameters",
+    "Checkpointing": "jaxmpm.rollout",
+    **{name: "jaxmpm.scene" for name in (
+        "Body", "Boundaries", "Contact", "Geostatic", "Grid", "Kinematics", "Numerics", "Polygon", "Probe",
+        "Rectangle", "Scene", "load_scene")},
+    "Simulation": "jaxmpm.simulation",
+    "simulate": "jaxmpm.simulation",
+}
+
+
+def __getattr__(name):
+    """A public name (`_PUBLIC`) or a submodule (jaxmpm.parameters, ...), imported on first use."""
+    if name in _PUBLIC:
+        value = getattr(importlib.import_module(_PUBLIC[name]), name)
+    else:
+        try:
+            value = importlib.import_module(f"jaxmpm.{name}")
+        except ModuleNotFoundError as error:
+            if error.name != f"jaxmpm.{name}":      # a dependency missing inside a real submodule
+                raise
+            raise AttributeError(f"module 'jaxmpm' has no attribute {name!r}") from None
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_PUBLIC))
+
 
 __all__ = [
     "Body",

@@ -285,9 +285,11 @@ INTERRUPTED = 130
 
 @contextlib.contextmanager
 def interrupts_end_quietly():
-    """While starting (JAX importing: about a second, nothing made yet to keep), Ctrl-C or
-    SIGTERM ends the program at once with one line and status 130. (A KeyboardInterrupt
-    raised there can land in one of JAX's garbage-collector callbacks, which swallows it.)"""
+    """Ctrl-C or SIGTERM ends the program at once with one line and status 130: while JAX
+    imports, and through the built-in commands except where a run takes the signals itself
+    to keep what it computed (`output.deferred_interrupts`). Python's own KeyboardInterrupt
+    is no use there: raised inside one of JAX's garbage-collector callbacks it is swallowed,
+    and the program goes on."""
     def leave(signum, frame):
         os.write(2, b"jaxmpm: interrupted\n")
         os._exit(INTERRUPTED)
@@ -301,14 +303,20 @@ def interrupts_end_quietly():
 
 
 def main(argv=None):
-    arguments = build_parser().parse_args(argv)
     with interrupts_end_quietly():
-        importlib.import_module("jax")      # the slow part of starting
+        importlib.import_module("jax")      # the slow part of starting (the plugged commands import it too)
+        arguments = build_parser().parse_args(argv)
+        if arguments.command in COMMANDS:
+            return run_reporting_errors(COMMANDS[arguments.command], arguments)
+        command = plugged_commands()[arguments.command].run
+    return run_reporting_errors(command, arguments)       # a plugged command handles its own interrupts
 
-        command = COMMANDS.get(arguments.command) or plugged_commands()[arguments.command].run
+
+def run_reporting_errors(command, arguments) -> int:
+    """The command's exit status; a user error is one line and status 2."""
     try:
         return command(arguments)
-    except KeyboardInterrupt:       # outside a run's own handling (which says what it kept)
+    except KeyboardInterrupt:
         print("jaxmpm: interrupted", file=sys.stderr)
         return INTERRUPTED
     except SceneError as error:

@@ -1,7 +1,7 @@
 """Interrupting a run: Ctrl-C (SIGINT) or SIGTERM acts within a chunk of steps (well under a
 second) at any scene size, even in the middle of a long output interval; the file keeps every
 step done and resumes to the same result; a second signal stops at once and leaves a valid
-file."""
+file; a signal while JAX is still importing ends quietly."""
 
 import dataclasses
 import os
@@ -120,3 +120,14 @@ def test_a_second_signal_stops_at_once_and_leaves_a_valid_file(long_scene, tmp_p
     assert not result.complete
     rows = len(result.probes["top"])
     np.testing.assert_array_equal(result.probes["top"], expected["top"][:rows])
+
+
+def test_an_interrupt_while_jax_imports_ends_quietly(tmp_path):
+    scene = tmp_path / "block.toml"
+    scene.write_text(BLOCK)
+    process = start_run(scene, tmp_path / "early.h5")
+    time.sleep(0.3)                                      # python is up, jax is still importing
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 130, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err
