@@ -196,3 +196,15 @@ def test_a_candidate_without_noise_is_refused_before_compiling():
     measured = inverse.Observations.from_arrays({"top": ([0.005, 0.01], [[0.0], [0.0]], [1])})
     with pytest.raises(SceneError, match=r"candidates.top.probes.top.noise is missing"):
         design(inverse.Experiment(sim, measured, name="top"), GUESS)
+
+
+def test_the_design_file_keys_in_the_docs_are_current():
+    # docs/experiment_design.md holds the keys generated from the schema; regenerate them after
+    # changing it (python -m inverse.design_command).
+    from pathlib import Path
+
+    from inverse.design_command import REFERENCE_MARKERS, reference_markdown
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "experiment_design.md").read_text()
+    start, end = (page.index(marker) for marker in REFERENCE_MARKERS)
+    assert page[start + len(REFERENCE_MARKERS[0]):end].strip() == reference_markdown().strip()
