@@ -3,6 +3,7 @@
     jaxmpm run SCENE.toml [-o OUT.h5] [--set sand.friction_angle=32 ...] [--resume] [--quiet]
     jaxmpm check SCENE.toml [--set ...]
     jaxmpm calibrate CONFIG.toml [-o FIT.h5] [--resume] [--quiet]   (added by inverse.command)
+    jaxmpm design DESIGN.toml [-o OUT.h5 | .csv | .png]             (added by inverse.design_command)
     jaxmpm plot OUT.h5 [-o OUT.png | .gif | .mp4] [--field q] [--snapshot -1] [--probes] [--mirror]
     jaxmpm export OUT.h5 [-o OUT.pvd] [--revolve N]
 
