@@ -53,7 +53,7 @@ from jaxmpm.ensembles import batch_mesh, is_spread, spread_over_devices
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.parameters import resolve
 from jaxmpm.files import atomic_path
-from jaxmpm.simulation import describe_failure
+from jaxmpm.runner import describe_failure
 from jaxmpm.time_step import exceeds
 from jaxmpm.tracing import collector_paused
 from jaxmpm.kernels.xla_options import jit_reverse_mode, jit_with_options

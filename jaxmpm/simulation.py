@@ -1,8 +1,9 @@
-"""`Simulation`: a scene split into static structure and a parameter pytree, and forward runs.
+"""`Simulation`: a scene split into static structure and a parameter pytree, its step and probes.
 
     sim = Simulation(scene)
     sim.params                      # {"materials": {"sand": {"density": 1800.0, ...}}, "contacts": ...}
     sim.probes(params)              # {name: (T, k)}, differentiable w.r.t. every parameter
+    sim.run()                       # a forward run with progress, file and resume (`jaxmpm.runner`)
 
 The structure (grid, shape function, which materials, step count, time step) is fixed when the
 Simulation is built and compiled once; parameters are traced values, so `jax.grad`, `jax.jvp`
@@ -22,10 +23,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from jaxmpm import state as state_bits
 from jaxmpm.bodies import convex_outline
 from jaxmpm.budget import check_memory
-from jaxmpm.errors import SceneError, SimulationError
+from jaxmpm.errors import SceneError
 from jaxmpm.grid import GridLayout
 from jaxmpm.initial_stress import depth_below_top, geostatic_stress, jaky_k0
 from jaxmpm.contact import Interface
@@ -34,8 +34,8 @@ from jaxmpm.keys import is_concrete
 from jaxmpm.materials.base import material_parameters
 from jaxmpm.parameters import scene_parameters
 from jaxmpm.probes import make_probes
-from jaxmpm.output import RunFile, deferred_interrupts, uninterrupted
-from jaxmpm.results import FileSnapshots, Result
+from jaxmpm.runner import chunk_length, run_forward
+from jaxmpm.results import Result
 from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps, state_bytes
 from jaxmpm.scene import Scene
 from jaxmpm.seeding import padded, seed_bodies
@@ -55,18 +55,6 @@ def check_dtype(scene: Scene):
             "jax.config.update('jax_enable_x64', True) at the start of the program "
             "(the jaxmpm command does), or set numerics.dtype = 'float32'."
         )
-
-
-CHUNK_POINT_STEPS = 1e6   # point-steps per compiled call of a run: 0.1-0.5 s on a 2-core CPU (1-8 M/s)
-
-
-def chunk_length(steps_per_output: int, points: int) -> int:
-    """Steps per compiled call of `Simulation.run`: the largest divisor of the output
-    interval whose point-steps stay within CHUNK_POINT_STEPS (at least 1 step), so that an
-    interrupt is acted on, the progress bar moves and the file grows within about a second
-    at any scene size, while small scenes still run a whole interval per call."""
-    most = max(1, int(CHUNK_POINT_STEPS // max(points, 1)))
-    return max(d for d in range(1, min(most, steps_per_output) + 1) if steps_per_output % d == 0)
 
 
 def slowest_crossing_time(scene: Scene) -> float:
@@ -101,21 +89,6 @@ def velocity_fields(scene: Scene):
         held = next((side for side in (first, second) if side in prescribed), None)
         interfaces.append(Interface(first, second, name, first in kinematic, second in kinematic, held))
     return field, count, tuple(interfaces)
-
-
-def snapshot_fields(particles, initial_x, fields):
-    """Host copies of the requested per-point fields of one state: {field: (N, ...)}."""
-    history = particles.history
-    values = {
-        "x": lambda: particles.x,
-        "v": lambda: particles.v,
-        "displacement": lambda: particles.x - initial_x,
-        "stress": lambda: particles.stress,
-        "plastic_strain": lambda: jnp.concatenate([h["plastic_strain"] for h in history]),
-        "volume": lambda: particles.volume,
-        "mass": lambda: particles.mass,
-    }
-    return {field: np.asarray(values[field]()) for field in fields}
 
 
 class Simulation:
@@ -432,120 +405,8 @@ class Simulation:
         return scan_steps(advance, state, self.chunk)
 
     def run(self, params=None, initial=None, progress=True, save_to=None, resume=False):
-        """Forward run with a progress bar; see `simulate`."""
-        from jaxmpm.progress import progress_bar
-
-        params = self.cast(self.params if params is None else params)
-        self.check_time_step(params, initial)
-        state = self.initial_state(params) if initial is None else self.place(initial)
-        state = state.replace(**counters_at_start())
-        fields = self.scene.snapshot_fields
-        if resume:
-            if save_to is None:
-                raise SceneError("resume=True needs save_to, the file of the run to continue.")
-            writer, state, done, stored, initial_x = RunFile.reopen(save_to, self, params, state)
-            state = self.place(state)
-            probes = {name: [values] for name, values in stored.items()}
-        else:
-            done, initial_x = 0, state.particles.x
-            probes = {name: [np.asarray(value)[None]] for name, value in self.observe_start(state).items()}
-            first = snapshot_fields(state.particles, initial_x, fields)
-            writer = None if save_to is None else RunFile.create(
-                save_to, self, params, state, {name: rows[0][0] for name, rows in probes.items()}, first)
-        snapshots = [] if writer is not None else [first]       # a file keeps them, memory does not
-
-        steps_done = [done * self.steps_per_output]        # steps whose probe rows are kept
-
-        def finish(complete, message):
-            steps = steps_done[0]
-            if writer is None:
-                return Result.from_run(self, probes, snapshots, steps, complete, message)
-            writer.finish(complete, message)
-            return Result(self.scene.to_toml(), self.time[: steps + 1],
-                          {name: np.concatenate(rows) for name, rows in probes.items()},
-                          FileSnapshots(writer.path), complete, message)
-
-        bar = progress_bar(progress, total=self.steps, initial=done * self.steps_per_output, unit="step",
-                           desc=self.scene.name)
-        chunks = self.steps_per_output // self.chunk
-        with deferred_interrupts() as stop:
-            try:
-                for output in range(done, self.outputs):
-                    for _ in range(chunks):
-                        with collector_paused():
-                            state, values = self._advance(params, state, initial_x)
-                        error_step = int(state.error_step)
-                        rows = self.chunk if error_step < 0 else error_step - steps_done[0] - 1
-                        with uninterrupted(stop):
-                            for name, value in values.items():
-                                probes[name].append(np.asarray(value)[:rows])
-                            if writer is not None:
-                                writer.append_rows(values, rows)
-                            steps_done[0] += rows
-                        bar.update(rows)
-                        if error_step >= 0:
-                            message = describe_failure(self, state)
-                            raise SimulationError(message, finish(False, message))
-                        if stop["requested"] and steps_done[0] < self.steps:
-                            raise KeyboardInterrupt
-                    snapshot = snapshot_fields(state.particles, initial_x, fields)
-                    with uninterrupted(stop):
-                        if writer is None:
-                            snapshots.append(snapshot)
-                        else:
-                            writer.append_snapshot(snapshot, state, output + 1)
-            except KeyboardInterrupt:
-                finish(False, f"interrupted at t = {steps_done[0] * self.dt:.6g} s")
-                raise
-            finally:
-                bar.close()
-        return finish(True, "")
-
-
-def describe_failure(sim: Simulation, state: State) -> str:
-    """One sentence: which step, body and point went wrong, and how."""
-    flags = np.asarray(state.particles.flags)
-    index = int(state.error_point)
-    block = next(b for b in sim.structure.bodies if b.start <= index < b.stop)
-    what = "left the grid" if flags[index] & state_bits.LEFT_GRID else "became non-finite"
-    step = int(state.error_step)
-    return (
-        f"the run stopped at step {step} (t = {step * sim.dt:.6g} s): point {index - block.start} "
-        f"of body {block.name!r} {what}; the output holds the run up to the step before"
-        f"{instability_hint(sim, state)}."
-    )
-
-
-def instability_hint(sim: Simulation, state: State) -> str:
-    """A clause for `describe_failure` when the failure looks like a numerical instability:
-    the first failure is a non-finite point, or by the state's step a point that never failed
-    moves more than a cell per step (|v| dt > h), which physical motion within the CFL limit
-    never does. Points that have left the grid are not judged: the grid no longer carries
-    them, and their values after leaving mean nothing. When the others move within the limit
-    (a body that simply flows off a free edge, say), the clause says so with their largest
-    |v| dt / h; when no point is left to judge, it gives both readings."""
-    flags = np.asarray(state.particles.flags)
-    scene = sim.scene
-    key, value = ("scene.dt", scene.dt) if scene.dt is not None else ("scene.cfl", scene.cfl)
-    first_left = bool(flags[int(state.error_point)] & state_bits.LEFT_GRID)
-    judged = flags == 0
-    if first_left and not judged.any():
-        return (f" (by the end of the output interval every point had failed: if the body should stay on the "
-                f"grid, the step may be unstable, lower {key}; if it leaves through a free edge, enlarge grid.size)")
-    speeds = np.hypot(*np.asarray(state.particles.v, np.float64)[judged].reshape(-1, 2).T)
-    fine = np.all(np.isfinite(speeds)) and np.all(np.isfinite(np.asarray(state.particles.x)[judged]))
-    per_step = np.max(speeds, initial=0.0) * sim.dt / scene.grid.cell     # the motion's Courant number
-    if first_left and fine and per_step <= 1.0:
-        return (f" (the points still on the grid move at most {per_step:.2g} of a cell per step: the body "
-                f"flowed off the grid; if it should stay on it, enlarge grid.size or hold that edge)")
-    numerics = scene.numerics
-    seen = (f"points moved up to {per_step:.3g} cells per step" if fine
-            else "points went non-finite")
-    return (
-        f" (by then {seen}: the step is unstable "
-        f"with {key} = {value:g}, numerics.shape = {numerics.shape!r}, transfer = {scene.transfer!r}, "
-        f"update = {numerics.update!r}; lower {key} or change the numerics, see docs/stability.md)"
-    )
+        """Forward run with a progress bar; see `simulate` and `runner.run_forward`."""
+        return run_forward(self, params, initial, progress, save_to, resume)
 
 
 def simulate(scene: Scene, params=None, progress=True, save_to=None, resume=False) -> Result:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import jaxmpm
-from jaxmpm.simulation import chunk_length
+from jaxmpm.runner import chunk_length
 from tests.scenes import BLOCK
 
 # One output interval of 270,000 steps (about 8 s here): before runs were chunked, a signal
@@ -36,7 +36,7 @@ def test_a_chunked_run_gives_the_same_numbers(tmp_path, monkeypatch):
     whole = jaxmpm.Simulation(scene)
     assert whole.chunk == whole.steps_per_output
     divisor = next(d for d in range(2, whole.steps_per_output) if whole.steps_per_output % d == 0)
-    monkeypatch.setattr(jaxmpm.simulation, "CHUNK_POINT_STEPS", divisor * whole.point_count)
+    monkeypatch.setattr(jaxmpm.runner, "CHUNK_POINT_STEPS", divisor * whole.point_count)
     chunked = jaxmpm.Simulation(scene)
     assert chunked.chunk == divisor < whole.steps_per_output
     expected = whole.run(progress=False)
