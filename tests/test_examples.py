@@ -1,5 +1,6 @@
 """Every example file loads, validates and runs: each scene a few steps with its own settings,
-each calibration file read with its scene and observations."""
+each calibration file read with its scene and observations, each design file with its
+candidates."""
 
 import pathlib
 
@@ -12,14 +13,16 @@ import jaxmpm
 from tests.test_presets import SCENES as RUN_BY_EVERY_PRESET
 
 EXAMPLES = pathlib.Path(__file__).resolve().parents[1] / "examples"
-ALL_SCENES = sorted(path for path in EXAMPLES.glob("*.toml") if not path.name.endswith(".calibration.toml"))
+ALL_SCENES = sorted(path for path in EXAMPLES.glob("*.toml")
+                    if not path.name.endswith((".calibration.toml", ".design.toml")))
 # tests/test_presets.py runs three steps of these under every preset that compiles other code
 SCENES = [path for path in ALL_SCENES if path not in RUN_BY_EVERY_PRESET]
 CALIBRATIONS = sorted(EXAMPLES.glob("*.calibration.toml"))
+DESIGNS = sorted(EXAMPLES.glob("*.design.toml"))
 
 
 def test_the_examples_are_found():
-    assert len(ALL_SCENES) >= 10 and len(CALIBRATIONS) >= 2
+    assert len(ALL_SCENES) >= 10 and len(CALIBRATIONS) >= 2 and len(DESIGNS) >= 1
     assert set(RUN_BY_EVERY_PRESET) <= set(ALL_SCENES)            # every example runs in one test or the other
     for path in ALL_SCENES:                                        # and every one reads and round-trips
         scene = jaxmpm.load_scene(path)
@@ -55,3 +58,16 @@ def test_every_example_calibration_file_loads(path):
         assert experiment.observations.channels, path.name
         probes = {probe.name for probe in experiment.scene.probes}
         assert set(experiment.observations.channels) <= probes, path.name
+
+
+@pytest.mark.parametrize("path", DESIGNS, ids=[path.stem for path in DESIGNS])
+def test_every_example_design_file_loads(path):
+    from inverse.design_command import load_design
+
+    config = load_design(path)
+    assert config.parameters and len(config.candidates) >= 2
+    for candidate in config.candidates:
+        probes = {probe.name for probe in candidate.sim.scene.probes}
+        assert candidate.observations.count > 0 and set(candidate.observations.channels) <= probes, path.name
+    if config.options["k"] is not None:
+        assert config.options["k"] <= len(config.candidates)
