@@ -9,7 +9,7 @@ import pytest
 from jaxmpm.grid import GridLayout, add_to_nodes
 from jaxmpm.kernels.fusion import materialized
 from jaxmpm.kernels.scatter import batched_add_to_nodes
-from jaxmpm.scene.files import scene_from_toml
+from jaxmpm.scene import Scene
 from jaxmpm.simulation import Simulation
 from tests.scenes import BLOCK, jaxpr_equations
 
@@ -131,7 +131,7 @@ def test_forward_only_simulation_gives_the_plain_jacobian():
     """`Simulation.forward_only` (the batched scatter in the step) against the plain simulation:
     the Levenberg-Marquardt Jacobian of the probes over E, nu and the contact friction, on a
     scene with two velocity fields."""
-    sim = Simulation(scene_from_toml(CONTACT_BLOCKS))
+    sim = Simulation(Scene.from_toml(CONTACT_BLOCKS))
     fast = sim.forward_only()
     assert fast.structure.derivatives == "forward" and sim.structure.derivatives == "any" and sim.forward_only() is fast
     params = sim.cast(sim.params)
@@ -159,7 +159,7 @@ def test_reverse_only_simulation_gives_the_plain_gradient():
     """`Simulation.reverse_only` (the transfers transposed into each other) against the plain
     simulation: value and gradient of a probe misfit over every parameter, on a scene with
     two velocity fields, a contact pair and 3 x 3 stencils."""
-    sim = Simulation(scene_from_toml(CONTACT_BLOCKS.replace('shape = "linear"', 'shape = "bspline2"')))
+    sim = Simulation(Scene.from_toml(CONTACT_BLOCKS.replace('shape = "linear"', 'shape = "bspline2"')))
     fast = sim.reverse_only()
     assert fast.structure.derivatives == "reverse" and sim.reverse_only() is fast
     params = sim.cast(sim.params)
@@ -179,7 +179,7 @@ def test_reverse_only_simulation_gives_the_plain_gradient():
 
 @pytest.mark.parametrize("variant", ["forward_only", "reverse_only"])
 def test_a_variant_refuses_the_other_mode(variant):
-    sim = getattr(Simulation(scene_from_toml(BLOCK)), variant)()
+    sim = getattr(Simulation(Scene.from_toml(BLOCK)), variant)()
     loss = lambda young: jnp.sum(sim.probes(jaxmpm_with_young(sim, young))["top"])  # noqa: E731
     other = (lambda: jax.grad(loss)(1.0e6)) if variant == "forward_only" else (lambda: jax.jvp(loss, (1.0e6,), (1.0,)))
     with pytest.raises((TypeError, NotImplementedError)):

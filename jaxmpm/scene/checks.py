@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from jaxmpm.errors import SceneError
 from jaxmpm.keys import check_range, check_value
-from jaxmpm.scene.model import KINEMATICS, NAME, Grid, Kinematics, Rectangle, Scene
+from jaxmpm.scene.parts import KINEMATICS, NAME, Grid, Kinematics, Rectangle
 from jaxmpm.scene.schema import SCENE_FILE
 from jaxmpm.time_step import check_scene_step
 
@@ -30,7 +30,7 @@ def _section(*names):
     return section
 
 
-def check_scene(scene: Scene):
+def check_scene(scene):
     """Every check that needs no compiling. Raises SceneError naming the key and value."""
     check_fields(scene, _section("scene"), "scene")
     if scene.output_every is not None:
@@ -60,7 +60,7 @@ def check_grid(grid: Grid):
             )
 
 
-def check_names(scene: Scene):
+def check_names(scene):
     """Names of materials, bodies and probes: safe in HDF5 paths and --set, never 'time'."""
     if not scene.materials:
         raise SceneError("materials is empty: define at least one [materials.NAME] table.")
@@ -90,7 +90,7 @@ def _inside_grid(grid: Grid, point) -> bool:
     )
 
 
-def check_bodies(scene: Scene):
+def check_bodies(scene):
     body_keys = _section("bodies")
     for index, body in enumerate(scene.bodies):
         where = f"bodies[{index}]"
@@ -127,7 +127,7 @@ def check_region(where, region, grid: Grid):
             )
 
 
-def check_initial_stress(scene: Scene, where, body):
+def check_initial_stress(scene, where, body):
     if body.kinematics.type != "free":
         raise SceneError(
             f"{where}.initial_stress is given for a {body.kinematics.type} body, whose stress is never used: "
@@ -166,7 +166,7 @@ def check_kinematics(key: str, kinematics: Kinematics):
         raise SceneError(f"{key}.time = {times} must start at 0 and increase strictly.")
 
 
-def check_axisymmetric(scene: Scene):
+def check_axisymmetric(scene):
     """In axisymmetry x is the radius: the grid starts on the axis, whose edge holds the
     radial velocity, gravity is axial, and no body turns in the (r, z) plane."""
     grid = scene.grid
@@ -189,7 +189,7 @@ def check_axisymmetric(scene: Scene):
             )
 
 
-def check_contacts(scene: Scene):
+def check_contacts(scene):
     names = [body.name for body in scene.bodies]
     kinds = {body.name: body.kinematics.type for body in scene.bodies}
     declared = []
@@ -212,7 +212,7 @@ def check_contacts(scene: Scene):
         declared.append(set(contact.pair))
 
 
-def check_probes(scene: Scene):
+def check_probes(scene):
     kinds = {body.name: body.kinematics.type for body in scene.bodies}
     declared = [set(contact.pair) for contact in scene.contacts]
     probe_keys = _section("probes")

@@ -1,9 +1,10 @@
-"""Reading and writing scene files: TOML text <-> nested dicts <-> `Scene`.
+"""Reading and writing scene files: TOML text <-> nested dicts <-> a `Scene`'s parts.
 
 Reading is `jaxmpm.keys.read_section` over `SCENE_FILE` (types, choices, ranges, unknown and
-missing keys), then the dataclasses are built, which runs the checks that relate keys
-(`jaxmpm.scene.checks`). Writing states what the scene holds, leaving out the numerics its
-preset filled in, so that `scene_from_toml(scene_to_toml(scene)) == scene`.
+missing keys), then the parts are built (`scene_arguments`); `Scene.from_dict` builds the
+scene from them, which runs the checks that relate keys (`jaxmpm.scene.checks`). Writing
+states what the scene holds, leaving out the numerics its preset filled in, so that
+`Scene.from_toml(scene.to_toml()) == scene`. This module knows the parts, not `Scene`.
 """
 
 from __future__ import annotations
@@ -15,17 +16,17 @@ import tomli_w
 from jaxmpm.errors import SceneError
 from jaxmpm.keys import read_section
 from jaxmpm.materials import MODELS
-from jaxmpm.scene.model import (
-    Body, Boundaries, Contact, Geostatic, Grid, Kinematics, Numerics, Polygon, Probe, Rectangle, Scene,
-)
+from jaxmpm.parameters import qualify
+from jaxmpm.scene.parts import Body, Boundaries, Contact, Geostatic, Grid, Kinematics, Numerics, Polygon, Probe, Rectangle
 from jaxmpm.scene.schema import MATERIAL, SCENE_FILE
 
 
 # --------------------------------------------------------------------------- reading
 
 
-def load_scene(path) -> Scene:
-    """Read and check a TOML scene file."""
+def read_scene_file(path) -> dict:
+    """The nested dict of a TOML scene file (SceneError if it cannot be read, is not TOML, or is
+    a calibration file)."""
     try:
         with open(path, "rb") as stream:
             data = stream.read()
@@ -35,30 +36,26 @@ def load_scene(path) -> Scene:
         text = data.decode()
     except UnicodeDecodeError as error:
         raise SceneError(f"scene file {str(path)!r} is not UTF-8 text (byte {error.start}).") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as error:
-        raise SceneError(f"the scene is not valid TOML: {error}.") from None
+    data = toml_values(text)
     calibration_keys = [key for key in ("fit", "observations", "experiments", "optimizer") if key in data]
     if calibration_keys and "grid" not in data:
         raise SceneError(f"{str(path)!r} is a calibration file (it has `{calibration_keys[0]}`), not a scene file: "
                          f"give it to `jaxmpm calibrate`, or give a scene file here.")
-    return scene_from_dict(data)
+    return data
 
 
-def scene_from_toml(text: str) -> Scene:
+def toml_values(text: str) -> dict:
     try:
-        data = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise SceneError(f"the scene is not valid TOML: {error}.") from None
-    return scene_from_dict(data)
 
 
-def scene_from_dict(data) -> Scene:
-    """Build a checked Scene from the nested dict of a TOML file."""
+def scene_arguments(data) -> dict:
+    """The keyword arguments of a `Scene` (its parts built) from the nested dict of a TOML file."""
     values = read_section(SCENE_FILE, data, "")
     grid = values["grid"]
-    return Scene(
+    return dict(
         grid=Grid(size=grid["size"], cell=grid["cell"], origin=grid["origin"], boundaries=Boundaries(**grid["boundaries"])),
         materials={name: _material(entry) for name, entry in values["materials"].items()},
         bodies=tuple(_body(entry) for entry in values["bodies"]),
@@ -107,8 +104,8 @@ def _given(pairs) -> dict:
     return {name: _toml(value) for name, value in pairs if value is not None}
 
 
-def scene_to_dict(scene: Scene) -> dict:
-    """The nested dict that `scene_from_dict` reads back into an equal Scene."""
+def scene_to_dict(scene) -> dict:
+    """The nested dict of a Scene, which `Scene.from_dict` reads back into an equal one."""
     names = [key.name for key in SCENE_FILE.key("scene").section.keys]
     grid = scene.grid
     data = {
@@ -141,14 +138,14 @@ def _body_to_dict(body: Body) -> dict:
     return entry
 
 
-def scene_to_toml(scene: Scene) -> str:
-    return tomli_w.dumps(scene_to_dict(scene))
+def toml_text(data: dict) -> str:
+    return tomli_w.dumps(data)
 
 
 # --------------------------------------------------------------------------- one value
 
 
-def _names_a_key(scene: Scene, full: str) -> bool:
+def _names_a_key(scene, full: str) -> bool:
     """Whether "materials.NAME.KEY", "bodies.NAME.KEY" or "contacts.PAIR.KEY" names a key the
     scene file has for that material, body or contact pair."""
     namespace, owner, *rest = full.split(".")
@@ -162,10 +159,9 @@ def _names_a_key(scene: Scene, full: str) -> bool:
     return rest[0] in SCENE_FILE.key(namespace).section.all_names()
 
 
-def scene_with_value(scene: Scene, key: str, value) -> Scene:
-    """`Scene.with_value`: the scene with the value at dotted `key` replaced (see there)."""
-    from jaxmpm.parameters import qualify
-
+def dict_with_value(scene, key: str, value) -> dict:
+    """`Scene.with_value`: the scene's nested dict with the value at dotted `key` replaced (see
+    there)."""
     data = scene_to_dict(scene)
     owners = {"materials": tuple(scene.materials), "contacts": tuple(c.name for c in scene.contacts),
               "bodies": tuple(body.name for body in scene.bodies)}
@@ -199,4 +195,4 @@ def scene_with_value(scene: Scene, key: str, value) -> Scene:
     if not isinstance(table, dict):
         raise SceneError(f"--set {key}: {parts[-1]!r} is not a key of a table.")
     table[parts[-1]] = value
-    return scene_from_dict(data)
+    return data

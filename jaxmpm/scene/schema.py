@@ -9,7 +9,7 @@ the grid, a probe naming a body) are in `jaxmpm.scene.checks`.
 
 from jaxmpm.keys import REQUIRED, Key, Section
 from jaxmpm.materials import MODELS
-from jaxmpm.scene.model import (
+from jaxmpm.scene.parts import (
     BOUNDARY_KINDS, DEFAULT_PRESET, DEFAULT_RELAXATION, GEOMETRIES, KINEMATICS, NUMERICS_CHOICES, PRESETS, PROBE_KINDS, SNAPSHOT_FIELDS,
 )
 
