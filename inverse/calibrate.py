@@ -517,9 +517,10 @@ def _finish(experiments, groups, space, problem, data, bases, run, state, start_
         raise SimulationError("every start of the calibration went non-finite; narrow the bounds or change the starts.")
     best = int(np.nanargmin(np.where(np.isfinite(final_losses), final_losses, np.nan)))
     values = np.asarray(space.to_physical(final_z[best]))
+    linearization = None
     if optimizer == "lm" and take_last[best]:
         linearization = physical_linearization(space, final_z[best], state.residuals[best], state.jacobian[best])
-    else:
+    if linearization is None:             # another optimiser, a passed point, or a value pinned at a bound
         with collector_paused():
             linearization = problem.linearization(jnp.asarray(values, dtype), data, bases)
     covariance, jacobian = gauss_newton(
