@@ -1,7 +1,7 @@
 """The `jaxmpm` command.
 
     jaxmpm run SCENE.toml [-o OUT.h5] [--set sand.friction_angle=32 ...] [--resume] [--quiet]
-    jaxmpm check SCENE.toml [--set ...]
+    jaxmpm check SCENE.toml [--set ...] [--quick]
     jaxmpm calibrate CONFIG.toml [-o FIT.h5] [--resume] [--quiet]   (added by inverse.command)
     jaxmpm design DESIGN.toml [-o OUT.h5 | .csv | .png]             (added by inverse.design_command)
     jaxmpm plot OUT.h5 [-o OUT.png | .gif | .mp4] [--field q] [--snapshot -1] [--probes] [--mirror]
@@ -62,10 +62,12 @@ def build_parser():
     run.add_argument("--resume", action="store_true",
                      help="continue the interrupted run in OUTPUT (same scene and --set values)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
-    check = commands.add_parser("check", help="read and check a scene (points, steps, memory) without running it")
+    check = commands.add_parser("check", help="check a scene (points, steps, memory) and estimate its run time "
+                                              "from a few timed steps")
     check.add_argument("scene", help="scene file (TOML)")
     check.add_argument("--set", dest="assignments", action="append", default=[], metavar="KEY=VALUE",
                        help="override a scene value, as for run")
+    check.add_argument("--quick", action="store_true", help="no timed steps and no run-time estimate: nothing compiled")
     plot = commands.add_parser("plot", help="draw a run: points coloured by a field, or probe histories")
     plot.add_argument("result", help="output HDF5 file of `jaxmpm run`")
     plot.add_argument("-o", "--output", help="PNG, GIF or MP4 file (default: RESULT name with .png)")
@@ -164,6 +166,13 @@ def check_command(arguments):
     parts.pop("counts")
     print(f"{describe(sim)}, {sim.outputs} outputs; about {sum(parts.values()) / 1e6:.3g} MB of arrays for a forward run; "
           f"{describe_reverse_mode(*sim.reverse_mode_memory(), sim.steps)}: ok")
+    if not arguments.quick:
+        import jaxmpm
+        from jaxmpm.run_time import estimate_run_time
+
+        jaxmpm.use_compilation_cache()          # the program compiled here is the one `run` loads
+        print("compiling and timing a few steps for the run-time estimate (--quick skips it)", file=sys.stderr)
+        print(estimate_run_time(sim).describe())
     return 0
 
 

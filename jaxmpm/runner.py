@@ -1,8 +1,8 @@
 """Host work around a `Simulation`: the forward run that users watch and files keep.
 
-`run_forward` advances the compiled chunks of steps (`chunk_length`: well under a second each,
-dividing the output interval), shows the progress, streams the probe rows and snapshots to the
-run's file (`jaxmpm.output.RunFile`), resumes an interrupted run from it, acts on Ctrl-C and
+`run_forward` advances the compiled chunks of steps (`chunk_length`: well under a second each;
+whole chunks and a remainder make up an output interval), shows the progress, streams the
+probe rows and snapshots to the run's file (`jaxmpm.output.RunFile`), resumes an interrupted run from it, acts on Ctrl-C and
 SIGTERM between chunks (`output.deferred_interrupts`), and says in one sentence why a run
 stopped early (`describe_failure`). The differentiable description of the scene, its step and
 its probes, is `jaxmpm.simulation.Simulation`, which this module only drives.
@@ -16,7 +16,7 @@ import numpy as np
 from jaxmpm import state as state_bits
 from jaxmpm.errors import SceneError, SimulationError
 from jaxmpm.output import RunFile, deferred_interrupts, uninterrupted
-from jaxmpm.progress import progress_bar
+from jaxmpm.progress import progress_bar, restart_clock
 from jaxmpm.results import FileSnapshots, Result
 from jaxmpm.state import counters_at_start
 from jaxmpm.tracing import collector_paused
@@ -25,12 +25,24 @@ CHUNK_POINT_STEPS = 1e6   # point-steps per compiled call of a run: 0.1-0.5 s on
 
 
 def chunk_length(steps_per_output: int, points: int) -> int:
-    """Steps per compiled call of `Simulation.run`: the largest divisor of the output
-    interval whose point-steps stay within CHUNK_POINT_STEPS (at least 1 step), so that an
-    interrupt is acted on, the progress bar moves and the file grows within about a second
-    at any scene size, while small scenes still run a whole interval per call."""
-    most = max(1, int(CHUNK_POINT_STEPS // max(points, 1)))
-    return max(d for d in range(1, min(most, steps_per_output) + 1) if steps_per_output % d == 0)
+    """Steps per compiled call of `Simulation.run`: at most the output interval and at most
+    CHUNK_POINT_STEPS point-steps (at least 1 step), so that an interrupt is acted on, the
+    progress bar moves and the file grows within about a second at any scene size, while
+    small scenes still run a whole interval per call. The largest divisor of the interval
+    within that bound if it is at least half the bound; else the bound, and each interval
+    ends with a shorter call of the remainder (`interval_calls`), so that the cost of a call
+    (about 1 ms: dispatch, the file's append) stays small beside its steps."""
+    most = min(steps_per_output, max(1, int(CHUNK_POINT_STEPS // max(points, 1))))
+    divisor = max(d for d in range(1, most + 1) if steps_per_output % d == 0)
+    return divisor if 2 * divisor >= most else most
+
+
+def interval_calls(sim) -> list:
+    """[(compiled program, its steps)] of one output interval of `sim`: its whole chunks,
+    then the remainder if `Simulation.chunk` does not divide the interval."""
+    calls = [(sim._advance, sim.chunk)] * (sim.steps_per_output // sim.chunk)
+    rest = sim.steps_per_output % sim.chunk
+    return calls + [(sim._advance_rest, rest)] if rest else calls
 
 
 def snapshot_fields(particles, initial_x, fields):
@@ -84,23 +96,28 @@ def run_forward(sim, params=None, initial=None, progress=True, save_to=None, res
                       FileSnapshots(writer.path), complete, message)
 
     bar = progress_bar(progress, total=sim.steps, initial=done * sim.steps_per_output, unit="step",
-                       desc=sim.scene.name)
-    chunks = sim.steps_per_output // sim.chunk
+                       desc=sim.scene.name, postfix="compiling")
+    compiled = False            # the first call compiles: the bar's clock starts after it
+    calls = interval_calls(sim)
     with deferred_interrupts() as stop:
         try:
             for output in range(done, sim.outputs):
-                for _ in range(chunks):
+                for advance, length in calls:
                     with collector_paused():
-                        state, values = sim._advance(params, state, initial_x)
+                        state, values = advance(params, state, initial_x)
                     error_step = int(state.error_step)
-                    rows = sim.chunk if error_step < 0 else error_step - steps_done[0] - 1
+                    rows = length if error_step < 0 else error_step - steps_done[0] - 1
                     with uninterrupted(stop):
                         for name, value in values.items():
                             probes[name].append(np.asarray(value)[:rows])
                         if writer is not None:
                             writer.append_rows(values, rows)
                         steps_done[0] += rows
-                    bar.update(rows)
+                    if compiled:
+                        bar.update(rows)
+                    else:
+                        restart_clock(bar, steps_done[0])
+                        compiled = True
                     if error_step >= 0:
                         message = describe_failure(sim, state)
                         raise SimulationError(message, finish(False, message))

@@ -141,6 +141,7 @@ class Simulation:
         self.compiled_cache = {}     # compiled work built on this simulation (e.g. calibrations)
         self.chunk = chunk_length(self.steps_per_output, self.point_count)   # steps per compiled call of `run`
         self._advance = jit_with_options(self._advance_chunk, several_fields=self.several_fields)
+        self._advance_rest = jit_with_options(self._advance_remainder, several_fields=self.several_fields)
         self._variants = {}         # the same simulation for other `derivatives` (`for_derivatives`)
 
     def forward_only(self) -> "Simulation":
@@ -169,6 +170,7 @@ class Simulation:
             variant._probes = jax.jit(variant._probes_from_state)
             variant.compiled_cache = {}
             variant._advance = jit_with_options(variant._advance_chunk, several_fields=variant.several_fields)
+            variant._advance_rest = jit_with_options(variant._advance_remainder, several_fields=variant.several_fields)
             variant._variants = {}
             self._variants[derivatives] = variant
         return self._variants[derivatives]
@@ -403,6 +405,12 @@ class Simulation:
         """`chunk` steps and their probe rows: the compiled unit of `run`."""
         advance = self._advance_and_observe(params, initial_x)
         return scan_steps(advance, state, self.chunk)
+
+    def _advance_remainder(self, params, state, initial_x):
+        """The steps of an output interval after its whole chunks (fewer than `chunk`, when
+        `chunk` does not divide it) and their probe rows: `run`'s second compiled unit."""
+        advance = self._advance_and_observe(params, initial_x)
+        return scan_steps(advance, state, self.steps_per_output % self.chunk)
 
     def run(self, params=None, initial=None, progress=True, save_to=None, resume=False):
         """Forward run with a progress bar; see `simulate` and `runner.run_forward`."""
