@@ -20,6 +20,7 @@ import importlib
 import os
 import signal
 import sys
+import threading
 import tomllib
 from pathlib import Path
 
@@ -119,7 +120,8 @@ def run_command(arguments):
     print(describe(sim), file=sys.stderr)
     print_notes(sim.scene)
     try:
-        sim.run(progress=not arguments.quiet, save_to=output, resume=arguments.resume)
+        with second_signal_ends_at_once(output):
+            sim.run(progress=not arguments.quiet, save_to=output, resume=arguments.resume)
     except jaxmpm.SimulationError as error:
         print(f"jaxmpm: {error}", file=sys.stderr)
         print(f"partial output written to {output}", file=sys.stderr)
@@ -129,6 +131,42 @@ def run_command(arguments):
         return INTERRUPTED
     print(f"wrote {output}")
     return 0
+
+
+@contextlib.contextmanager
+def second_signal_ends_at_once(output):
+    """A run takes the first Ctrl-C or SIGTERM itself and stops after the chunk of steps being
+    computed (`output.deferred_interrupts`); here a second signal ends the program at once,
+    even inside a long compiled call (a large scene's step, the first call's compile): its
+    file is marked interrupted at the last step written and closed, after any write in
+    progress (`output.abandon_open_runs`), so it stays valid and resumable; status 130. A
+    thread does it, woken through Python's signal wakeup pipe: the main thread runs no Python
+    until a compiled call returns, so no signal handler could act before."""
+    read, write = os.pipe()
+    os.set_blocking(write, False)
+    previous = signal.set_wakeup_fd(write, warn_on_full_buffer=False)
+
+    def watch():
+        seen = 0
+        while data := os.read(read, 64):
+            seen += sum(byte in (signal.SIGINT, signal.SIGTERM) for byte in data)
+            if seen >= 2:
+                from jaxmpm.output import abandon_open_runs
+
+                abandon_open_runs()
+                os.write(2, f"jaxmpm: interrupted at once; partial output written to {output} "
+                            "(continue with --resume)\n".encode())
+                os._exit(INTERRUPTED)
+
+    watcher = threading.Thread(target=watch, name="jaxmpm-second-signal", daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        signal.set_wakeup_fd(previous)
+        os.close(write)                     # the watcher reads the end of the pipe and returns
+        watcher.join()
+        os.close(read)
 
 
 def checked_simulation(arguments):

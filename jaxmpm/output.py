@@ -22,6 +22,7 @@ import contextlib
 import os
 import signal
 import threading
+import weakref
 from pathlib import Path
 
 import h5py
@@ -32,6 +33,8 @@ from jaxmpm.errors import SceneError
 
 EXTENTS = {"plane_strain": "per metre of thickness", "axisymmetric": "per radian"}
 SLOTS = ("a", "b")
+WRITING = threading.RLock()     # held while a run file is written to (`uninterrupted`, `RunFile.finish`)
+_open_runs = weakref.WeakSet()  # the RunFiles being written (`abandon_open_runs`)
 
 
 def leaves_with_names(tree):
@@ -77,6 +80,7 @@ class RunFile:
 
     def __init__(self, path: Path, file: h5py.File, sim):
         self.path, self.file, self.sim = path, file, sim
+        _open_runs.add(self)
 
     # ------------------------------------------------------------------ starting
 
@@ -214,8 +218,21 @@ class RunFile:
         self.file.flush()                   # the file says to resume from them
 
     def finish(self, complete: bool, message: str):
-        self.file.attrs.update({"complete": bool(complete), "message": message})
-        self.file.close()
+        with WRITING:
+            _open_runs.discard(self)
+            self.file.attrs.update({"complete": bool(complete), "message": message})
+            self.file.close()
+
+
+def abandon_open_runs():
+    """Mark every run file still being written as interrupted at its last step written, and
+    close it: for a program that ends at once, from any thread (the `jaxmpm` command at a
+    second signal). Waits for a write in progress (WRITING), so every file stays valid and
+    resumable."""
+    with WRITING:
+        for run in [run for run in _open_runs if run.file.id.valid]:
+            done = int(run.file.attrs["steps_done"])
+            run.finish(False, f"interrupted at t = {done * run.sim.dt:.6g} s")
 
 
 @contextlib.contextmanager
@@ -252,7 +269,8 @@ def uninterrupted(stop):
     interrupts as soon as the block is done (`deferred_interrupts`)."""
     stop["writing"] = True
     try:
-        yield
+        with WRITING:
+            yield
     finally:
         stop["writing"] = False
     if stop["pending"]:

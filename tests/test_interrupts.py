@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import jaxmpm
+from jaxmpm.output import resumable_steps
 from jaxmpm.runner import chunk_length, interval_calls
 from tests.scenes import BLOCK
 
@@ -59,6 +60,15 @@ def steps_in(path) -> int:
     try:
         with h5py.File(path, "r", locking=False) as file:
             return int(file.attrs["steps_done"])
+    except (OSError, KeyError):
+        return 0
+
+
+def outputs_in(path) -> int:
+    """The output intervals a run that another process is writing can resume from."""
+    try:
+        with h5py.File(path, "r", locking=False) as file:
+            return int(file.attrs["resume_output"])
     except (OSError, KeyError):
         return 0
 
@@ -122,6 +132,34 @@ def test_a_second_signal_stops_at_once_and_leaves_a_valid_file(long_scene, tmp_p
     assert not result.complete
     rows = len(result.probes["top"])
     np.testing.assert_array_equal(result.probes["top"], expected["top"][:rows])
+
+
+def test_a_second_signal_stops_at_once_inside_a_long_compiled_call(tmp_path):
+    # Calls of a whole interval of 137,000 steps (about 4 s here), as one step of a scene of
+    # millions of points takes: the first signal waits for the call to end, the second does not.
+    scene_path = tmp_path / "two_calls.toml"
+    scene_path.write_text(BLOCK.replace("duration = 0.01", "duration = 200.0")
+                          .replace("output_every = 0.005", "output_every = 100.0"))
+    output = tmp_path / "two_calls.h5"
+    driver = ("import sys, jaxmpm.runner; jaxmpm.runner.CHUNK_POINT_STEPS = 1e12; "
+              "from jaxmpm.cli import main; sys.exit(main(sys.argv[1:]))")
+    process = subprocess.Popen([sys.executable, "-c", driver, "run", str(scene_path), "-o", str(output), "--quiet"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "JAXMPM_CACHE_DIR": "off"})
+    wait_for_steps(process, output)                      # the first call is done
+    while outputs_in(output) == 0:                       # and its snapshot written:
+        time.sleep(0.05)
+    time.sleep(0.5)                                      # the second call has begun
+    process.send_signal(signal.SIGINT)
+    process.send_signal(signal.SIGTERM)
+    signalled = time.monotonic()
+    _, err = process.communicate(timeout=60)
+    assert time.monotonic() - signalled < 1.5            # not the rest of the call (3 s or more)
+    assert process.returncode == 130 and "interrupted at once" in err and "Traceback" not in err, err
+    result = jaxmpm.Result.load(output)                  # valid, marked interrupted at its last step written
+    assert not result.complete and result.message == "interrupted at t = 100 s"
+    assert len(result.snapshots["time"]) == 2            # t = 0 and the end of the first call
+    assert resumable_steps(output) == len(result.probes["top"]) - 1 > 100_000
 
 
 def wait_for_handler(process, timeout=30.0):
