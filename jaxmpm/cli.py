@@ -203,7 +203,7 @@ def check_command(arguments):
     parts = estimate_bytes(sim.scene, sim.steps)
     parts.pop("counts")
     print(f"{describe(sim)}, {sim.outputs} outputs; about {sum(parts.values()) / 1e6:.3g} MB of arrays for a forward run; "
-          f"{describe_reverse_mode(*sim.reverse_mode_memory(), sim.steps)}: ok")
+          f"{describe_reverse_mode(*sim.reverse_mode_memory(), sim.steps)}: ok", flush=True)
     if not arguments.quick:
         import jaxmpm
         from jaxmpm.run_time import estimate_run_time
