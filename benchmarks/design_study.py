@@ -43,6 +43,7 @@ import numpy as np  # noqa: E402
 
 import inverse  # noqa: E402
 import jaxmpm  # noqa: E402
+from inverse.design import guess_values, jacobians_at, parameter_space  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "experiment_design.md"
@@ -89,6 +90,7 @@ TWINS = {
                  {"sand.friction_angle": 26.0, "sand.fluidity": 3.5},
                  {"crest": [0, 1], "top": [0, 1]}, 1e-3, "design_study_heap"),
 }
+LINEAR_DRAWS = 400     # noise draws of the linearised fits
 EARLY = [0.01 * k for k in range(1, 11)]
 # --ranking: candidate sets of the footing twin, {label: {probe: plan}} (noise filled in)
 RANKED_SETS = {
@@ -114,6 +116,22 @@ def noisy_observations(sim, planned, truth_probes, noise, seed):
         clean = np.stack([np.interp(channel.times, sim.time, truth_probes[name][:, k]) for k in channel.components], axis=1)
         data[name] = (channel.times, clean + noise * rng.standard_normal(clean.shape), channel.components)
     return inverse.Observations.from_arrays(data, sigma={name: noise for name in data})
+
+
+def linear_responses(experiment, truth, planned, seeds):
+    """(seeds, P) the linearised fits delta_theta = F^-1 J^T eps of noise draws 0..seeds-1 (eps the
+    draw over sigma, J the weighted Jacobian at the truth, residuals in channel, time, component
+    order): what each seed's calibration gives where the residuals are linear, without one."""
+    space = parameter_space([experiment.sim.params], truth)
+    jacobian = jacobians_at([experiment], space, guess_values(space, "guess"))[0][0]      # (M, P)
+    gain = np.linalg.solve(jacobian.T @ jacobian, jacobian.T)
+    # noisy_observations draws channel by channel from one generator per seed: the same stream
+    draws = []
+    for seed in range(seeds):
+        rng = np.random.default_rng(seed)
+        draws.append(np.concatenate([rng.standard_normal((len(channel.times), len(channel.components))).reshape(-1)
+                                     for channel in planned.channels.values()]))
+    return np.array(draws) @ gain.T
 
 
 def truth_simulation(twin):
@@ -153,10 +171,14 @@ def study(twin, seeds, noise):
     sim, truth_probes = truth_simulation(twin)
     planned = inverse.planned_observations(sim, plan(twin.observed, noise))
     started = time.monotonic()
-    prediction = inverse.design(inverse.Experiment(sim, planned, name="twin"), twin.truth).information()
+    experiment = inverse.Experiment(sim, planned, name="twin")
+    prediction = inverse.design(experiment, twin.truth).information()
     design_seconds = time.monotonic() - started
     fitted, reported, seconds = fit_seeds(sim, planned, truth_probes, twin, noise, seeds)
     empirical = fitted.std(axis=0, ddof=1)
+    linear = linear_responses(experiment, twin.truth, planned, max(seeds, LINEAR_DRAWS))
+    offsets = fitted - np.array([twin.truth[name] for name in prediction.names])
+    agreement = [np.corrcoef(linear[:seeds, k], offsets[:, k])[0, 1] for k in range(len(prediction.names))]
     rows = ["| parameter | truth | predicted standard error | empirical spread (std over seeds) | ratio | "
             "mean fitted − truth | calibration's own standard error (mean) |", "|---|---|---|---|---|---|---|"]
     for index, name in enumerate(prediction.names):
@@ -169,6 +191,13 @@ def study(twin, seeds, noise):
              f"empirical {np.corrcoef(fitted.T)[0, 1]:+.3f}. The design took {design_seconds:.1f} s (with compiling), "
              f"a calibration {np.median(seconds):.1f} s (median). Measured {datetime.date.today()} on {machine()}; "
              f"the ratio's sampling uncertainty is about ±{1 / np.sqrt(2 * (seeds - 1)):.2f}.")
+    notes += ("\n\nLinearised fits (F^-1 J^T eps of each noise draw, no calibration): correlation with the "
+              f"calibrated offsets over these seeds {', '.join(f'{c:.4f}' for c in agreement)}; their mean over these "
+              f"seeds {', '.join(f'{m:+.2f}' for m in linear[:seeds].mean(axis=0) / prediction.stderr)} predicted "
+              f"standard errors (the calibrations': {', '.join(f'{m:+.2f}' for m in offsets.mean(axis=0) / prediction.stderr)}); "
+              f"over {len(linear)} draws their mean is {', '.join(f'{m:+.3f}' for m in linear.mean(axis=0) / prediction.stderr)} "
+              f"and their spread {', '.join(f'{r:.2f}' for r in linear.std(axis=0, ddof=1) / prediction.stderr)} times the "
+              "predicted standard error.")
     return "\n".join(rows) + "\n\n" + notes + "\n"
 
 
@@ -186,8 +215,9 @@ def ranking(seeds, noise):
     names = predicted[order[0]].names
     truth = np.array([twin.truth[name] for name in names])
     scale = np.abs(truth)
-    header = ("| rank | observations | values | predicted log det | " +
-              " | ".join(f"`{n}` predicted / spread (RMS error)" for n in names) + " | empirical log det | fits off by > 4 predicted errors |")
+    header = ("| rank | observations | values | predicted log det | "
+              + " | ".join(f"`{n}` predicted / spread (RMS error)" for n in names)
+              + " | empirical log det | fits off by > 4 predicted errors |")
     rows = [header, "|" + "---|" * (6 + len(names))]
     spreads = {}
     for rank, label in enumerate(order, 1):
