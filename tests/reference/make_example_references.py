@@ -23,7 +23,7 @@ OUTPUT = Path(__file__).with_name("examples.npz")
 
 
 def example_scenes():
-    return sorted(path for path in (ROOT / "examples").glob("*.toml") if not path.name.endswith(".calibration.toml"))
+    return sorted(path for path in (ROOT / "examples").glob("*.toml") if not path.name.endswith((".calibration.toml", ".design.toml")))
 
 
 def shortened(scene, dt):
