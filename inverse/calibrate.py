@@ -42,6 +42,7 @@ import optax
 from jax.sharding import NamedSharding, PartitionSpec
 
 from inverse import levenberg_marquardt
+from inverse.compile_clock import CompileClock
 from inverse.experiments import (
     base_parameters, check_observations, experiment_bases, experiments_from, group_experiments, layout_of,
     members_over_devices, problem_arguments, problem_residuals,
@@ -251,16 +252,20 @@ class Progress:
     history_loss: list         # per iteration: (S,)
     history_values: list       # per iteration: (S, P) physical values
     history_gradient: list     # per iteration: (S,) ||dL/dz||_inf
-    history_seconds: list      # per iteration: wall time [s] (the first includes compiling)
+    history_seconds: list      # per iteration: wall time [s] (with any compiling in it)
     history_memory: list       # per iteration: the process's peak resident memory so far [MB]
     history_simulations: list  # per iteration: simulations so far (see `Fit.evaluations`)
     evaluations: int           # simulations so far
     best_z: np.ndarray         # (S, P) the finite point of lowest loss seen by each start
     best_loss: np.ndarray      # (S,) its loss (inf if none was finite)
+    elapsed_seconds: float = 0.0            # wall time so far, the sessions before a resume included
+    compile_seconds: float = 0.0            # of it compiling (`CompileClock`)
+    iteration_compile_seconds: float = 0.0  # of that, inside the iterations of `history_seconds`
 
 
 HISTORIES = ("history_loss", "history_values", "history_gradient", "history_seconds", "history_memory",
              "history_simulations")
+TIMES = ("elapsed_seconds", "compile_seconds", "iteration_compile_seconds")
 
 
 def save_checkpoint(path, progress: Progress, fingerprint):
@@ -279,6 +284,7 @@ def save_checkpoint(path, progress: Progress, fingerprint):
             best_loss=progress.best_loss,
             leaf_count=len(progress.opt_leaves),
             **{name: np.array(getattr(progress, name)) for name in HISTORIES},
+            **{name: getattr(progress, name) for name in TIMES},
             **arrays,
         )
 
@@ -299,6 +305,7 @@ def load_checkpoint(path, fingerprint) -> Progress:
             best_z=np.array(data["best_z"]),
             best_loss=np.array(data["best_loss"]),
             **{name: list(data[name]) for name in HISTORIES},
+            **{name: float(data[name]) for name in TIMES if name in data.files},   # older checkpoints: 0
         )
 
 
@@ -343,10 +350,10 @@ def calibrate(
     if fit is None:
         raise SceneError("fit is missing: name the parameters to fit, e.g. fit={'sand.friction_angle': (20, 45)}.")
     # optax's L-BFGS mixes int32 and int64 internally, which strict promotion would refuse.
-    with jax.numpy_dtype_promotion("standard"):
+    with jax.numpy_dtype_promotion("standard"), CompileClock() as timing:
         fitted = _calibrate(experiments_from(sim, observations), fit, optimizer, starts, max_iterations, gtol, ftol,
                             learning_rate, seed, checkpoint, checkpoint_every, resume, progress, callback,
-                            _checked_refinements(numerical_check))
+                            _checked_refinements(numerical_check), timing)
     return fitted
 
 
@@ -372,7 +379,8 @@ def _check_options(optimizer, max_iterations, checkpoint_every, gtol, ftol):
 
 
 def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, learning_rate,
-               seed, checkpoint, checkpoint_every, resume, progress, callback, refinements=()):
+               seed, checkpoint, checkpoint_every, resume, progress, callback, refinements, timing):
+    """The calibration; `timing` (a `CompileClock` opened before anything ran) times it."""
     from jaxmpm.progress import progress_bar
 
     _check_options(optimizer, max_iterations, checkpoint_every, gtol, ftol)
@@ -410,7 +418,6 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
     place = functools.partial(over_devices, replicate=is_spread((data, bases)))
     z0 = place(z0)
     fingerprint = _fingerprint(experiments, space, optimizer, learning_rate, start_values, data)
-    started = clock.monotonic()
     with collector_paused():        # the first call of each program traces it (jaxmpm.tracing)
         state_shape = problem.start_shape(z0, data, bases)
     treedef = jax.tree_util.tree_structure(state_shape)
@@ -423,12 +430,13 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
         run = Progress(0, np.asarray(z0), np.full(count, np.inf), np.zeros(count, bool), [""] * count,
                        [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(state)], [], [], [], [], [], [],
                        count * len(experiments) if optimizer in ("lm", "lbfgs") else 0, np.array(z0), np.full(count, np.inf))
+    earlier = (run.elapsed_seconds, run.compile_seconds)      # of the sessions before a resume (0 afresh)
     z = place(jnp.asarray(run.z, dtype))
     saved = copy.deepcopy(run)          # the last complete iteration: what an interrupt keeps
     bar = progress_bar(progress, total=max_iterations, initial=run.iteration, unit="it", desc="calibrate")
     try:
         while run.iteration < max_iterations and not run.done.all():
-            tick = clock.monotonic()
+            tick, compiled = clock.monotonic(), timing.seconds
             moved = np.asarray(state.accepted) if optimizer == "lm" else np.ones(count, bool)
             with collector_paused():
                 new_z, new_state, value, gradient_norm = problem.iterate(z, state, data, bases)
@@ -462,6 +470,8 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
             run.iteration += 1
             run.opt_leaves = [np.asarray(leaf) for leaf in jax.tree_util.tree_leaves(state)]
             run.history_seconds.append(clock.monotonic() - tick)
+            run.iteration_compile_seconds += timing.seconds - compiled
+            clock_in(run, timing, earlier)
             run.history_memory.append(peak_memory_mb())
             run.history_simulations.append(run.evaluations)
             saved = copy.deepcopy(run)
@@ -474,17 +484,19 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
                 callback(run.iteration, run)
     except KeyboardInterrupt:
         if checkpoint is not None:
-            save_checkpoint(checkpoint, saved, fingerprint)
+            save_checkpoint(checkpoint, clock_in(saved, timing, earlier), fingerprint)   # the time spent counts
         raise
     finally:
         bar.close()
     if checkpoint is not None:
-        save_checkpoint(checkpoint, run, fingerprint)
+        save_checkpoint(checkpoint, clock_in(run, timing, earlier), fingerprint)
     for s in range(count):
         if not run.reason[s]:
             run.reason[s] = f"max_iterations = {max_iterations} reached"
-    fitted = _finish(experiments, groups, space, problem, data, bases, run, state, start_values, optimizer, started,
-                     warning)
+    fitted = _finish(experiments, groups, space, problem, data, bases, run, state, start_values, optimizer, warning)
+    clock_in(run, timing, earlier)          # the covariance and best-fit runs count too
+    fitted.wall_time, fitted.compile_seconds = run.elapsed_seconds, run.compile_seconds
+    fitted.iteration_compile_seconds, fitted.earlier_seconds = run.iteration_compile_seconds, earlier[0]
     if refinements:
         with collector_paused():
             values = jnp.asarray(fitted.values, dtype)
@@ -493,7 +505,15 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
     return fitted
 
 
-def _finish(experiments, groups, space, problem, data, bases, run, state, start_values, optimizer, started, warning):
+def clock_in(run: Progress, timing: CompileClock, earlier) -> Progress:
+    """`run` with its wall and compile time so far: this session's (`timing`) after the
+    earlier sessions' (elapsed, compile) seconds."""
+    run.elapsed_seconds = earlier[0] + timing.elapsed
+    run.compile_seconds = earlier[1] + timing.seconds
+    return run
+
+
+def _finish(experiments, groups, space, problem, data, bases, run, state, start_values, optimizer, warning):
     """The Fit: each start's answer is the better of its last point and the best finite point
     it passed through (the last one unless it went astray); the best start's covariance and
     every experiment's best-fit probes. Levenberg–Marquardt's state holds the residuals and
@@ -557,7 +577,7 @@ def _finish(experiments, groups, space, problem, data, bases, run, state, start_
         history_simulations=np.array(run.history_simulations),
         iterations=run.iteration,
         evaluations=evaluations,
-        wall_time=clock.monotonic() - started,
+        wall_time=float("nan"),           # set by the caller (`clock_in`)
         optimizer=optimizer,
         experiments=runs,
         scene_toml=experiments[0].sim.scene.to_toml(),

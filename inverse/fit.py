@@ -17,8 +17,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from inverse.experiments import window_mean, window_steps
-from jaxmpm.files import atomic_path
 
 
 def gauss_newton(residuals, values, noise_known, linearization=None):
@@ -48,6 +46,22 @@ def gauss_newton(residuals, values, noise_known, linearization=None):
     return covariance, jacobian
 
 
+def time_line(cost: dict) -> str:
+    """Where a calibration's time went, from `Fit.cost`: compiling apart from the iterations."""
+    whole = f"{cost['wall_time']:.1f} s in all"
+    if cost["before_resume"] > 0:
+        whole += f" ({cost['before_resume']:.1f} s of it before the resume)"
+    count = cost["iterations"]
+    if not np.isfinite(cost["compiling"]):           # a file written before compiling was timed
+        later = cost["seconds_per_iteration"]
+        return (f"{whole}; {cost['first_iteration']:.1f} s first iteration"
+                + (f", {later:.2f} s per later one" if np.isfinite(later) else ""))
+    rest = cost["wall_time"] - cost["compiling"] - cost["iterating"]
+    return (f"{whole}: compiled in {cost['compiling']:.1f} s; {count} iterations in {cost['iterating']:.1f} s, "
+            f"{cost['iterating'] / max(count, 1):.2f} s per iteration; {max(rest, 0.0):.1f} s evaluating the "
+            "starts, covariance and best fit")
+
+
 @dataclasses.dataclass
 class ExperimentFit:
     """One experiment of a calibration: its measurements and the best fit's probe histories."""
@@ -66,7 +80,9 @@ class Fit:
     Cost: `evaluations` counts simulations (for "lm" one forward pass carrying P tangents;
     for "lbfgs" and "adam" one forward and one reverse pass), `history_seconds`,
     `history_memory` (peak resident memory so far, MB) and `history_simulations` give them
-    per iteration (the first iteration's seconds include compiling)."""
+    per iteration. `wall_time` is the whole calibration's, the sessions before a resume
+    (`earlier_seconds` of it) included; `compile_seconds` of it went into compiling (NaN:
+    not measured), `iteration_compile_seconds` of that inside the iterations."""
 
     names: tuple
     values: np.ndarray
@@ -92,6 +108,9 @@ class Fit:
     scene_toml: str
     warning: str = ""
     numerical_shifts: dict = dataclasses.field(default_factory=dict)   # {"dt" | "cell": (P,)}
+    compile_seconds: float = float("nan")
+    iteration_compile_seconds: float = 0.0
+    earlier_seconds: float = 0.0
 
     @property
     def observations(self):
@@ -132,14 +151,18 @@ class Fit:
 
     @property
     def cost(self) -> dict:
-        """What the calibration cost: iterations, simulations, wall time [s] (and the part
-        spent in the first iteration, which includes compiling), seconds per later iteration,
-        peak memory [MB]."""
+        """What the calibration cost: iterations, simulations, wall time [s] (`before_resume`
+        of it in the sessions before a resume), `compiling` [s] of it, the iterations' seconds
+        less their compiling (`iterating`), the first iteration's seconds and the mean of the
+        later ones (both with any compiling in them), peak memory [MB]."""
         later = self.history_seconds[1:]
         return {
             "iterations": self.iterations,
             "simulations": self.evaluations,
             "wall_time": self.wall_time,
+            "before_resume": self.earlier_seconds,
+            "compiling": self.compile_seconds,
+            "iterating": float(np.sum(self.history_seconds)) - self.iteration_compile_seconds,
             "first_iteration": float(self.history_seconds[0]) if len(self.history_seconds) else 0.0,
             "seconds_per_iteration": float(np.mean(later)) if len(later) else float("nan"),
             "peak_memory_mb": float(np.max(self.history_memory)) if len(self.history_memory) else float("nan"),
@@ -155,23 +178,21 @@ class Fit:
             partners = [self.names[j] for j in range(len(self.names)) if j != i and abs(correlation[i, j]) > correlated]
             if not np.isfinite(error):
                 verdicts[name] = "not identified: the data do not constrain it"
-            elif error > relative:
+                continue
+            if error > relative:
                 verdicts[name] = f"poorly identified (relative standard error {error:.1%})"
-            elif partners:
-                verdicts[name] = f"correlated with {', '.join(partners)} (|rho| > {correlated})"
             else:
                 verdicts[name] = f"identified (relative standard error {error:.2%})"
+            if partners:            # said on the line of each parameter of a correlated pair
+                verdicts[name] += f"; correlated with {', '.join(partners)} (|rho| > {correlated})"
         return verdicts
 
     def summary(self) -> str:
         cost = self.cost
         kind = "forward passes with tangents" if self.optimizer == "lm" else "forward + reverse passes"
-        later = cost["seconds_per_iteration"]
-        timing = (f"{cost['first_iteration']:.1f} s first iteration with compiling"
-                  + (f", {later:.2f} s per later one" if np.isfinite(later) else ""))
         lines = [f"{self.optimizer}: loss {self.loss:.6g} after {self.iterations} iterations, "
-                 f"{self.evaluations} simulations ({kind}), {self.wall_time:.1f} s "
-                 f"({timing}), peak memory {cost['peak_memory_mb']:.0f} MB"]
+                 f"{self.evaluations} simulations ({kind}), peak memory {cost['peak_memory_mb']:.0f} MB",
+                 f"  time: {time_line(cost)}"]
         if len(self.experiments) > 1:
             lines.append(f"  experiments: {', '.join(e.name for e in self.experiments)}")
         verdicts = self.identifiability()
@@ -202,70 +223,28 @@ class Fit:
         return lines
 
     def plot(self, path=None):
-        """Data vs fit for every observed component of every experiment, and the loss
-        history. Returns the figure (and writes it to `path` if given)."""
-        import matplotlib.pyplot as plt
+        """The calibration's figure (inverse/fit_plot.py): the loss and each parameter over the
+        iterations, the error ellipses of each pair, and data against fit for every observed
+        component of every experiment. Returns the figure (and writes it to `path` if given)."""
+        from inverse.fit_plot import fit_figure
 
-        several = len(self.experiments) > 1
-        channels = [(run, name, k, index) for run in self.experiments
-                    for name, channel in run.observations.channels.items()
-                    for index, k in enumerate(channel.components)]
-        figure, axes = plt.subplots(1, len(channels) + 1, figsize=(4 * (len(channels) + 1), 3.2))
-        for axis, (run, name, component, index) in zip(axes, channels):
-            channel = run.observations.channels[name]
-            simulated = run.probes[name]
-            if channel.window > 0 and len(run.time) > 1:      # what the observation measures
-                simulated = np.asarray(window_mean(simulated, window_steps(channel.window, run.time[1] - run.time[0])))
-            axis.plot(channel.times, channel.values[:, index], ".", ms=3, color="0.4", label="observed")
-            axis.plot(run.time, simulated[:, component], "-", color="C3",
-                      label=f"fit (mean over {channel.window:g} s)" if channel.window > 0 else "fit")
-            axis.set_title(f"{run.name}: {name}[{component}]" if several else f"{name}[{component}]")
-            axis.set_xlabel("t [s]")
-            axis.legend(fontsize=7)
-        history = axes[-1]
-        history.semilogy(self.history_loss, lw=1)
-        history.set_xlabel("iteration")
-        history.set_title("loss (each start)")
-        figure.tight_layout()
+        figure = fit_figure(self)
         if path is not None:
             figure.savefig(path, dpi=130)
         return figure
 
     def save(self, path) -> Path:
-        """HDF5, written atomically: attrs (optimizer, loss, iterations, evaluations, wall
-        time, scene of the first experiment); /params, /stderr (one dataset per parameter),
-        /correlation, /covariance, /names, /history/{loss, values, gradient_norm, seconds,
-        memory_mb, simulations}, /starts/{initial, final, loss}; /time and /probes/NAME of the
-        first experiment, and /experiments/NAME/{time, probes/PROBE} of each; with a numerical
-        check, /numerical_shift/REFINEMENT/PARAMETER."""
-        import h5py
+        """HDF5, written atomically (inverse/fit_file.py; every key: docs/output_files.md):
+        values, standard errors, covariance, correlation, the Jacobian at the fitted values,
+        the history, the starts, every experiment's observations and best-fit probes."""
+        from inverse.fit_file import save_fit
 
-        path = Path(path)
-        with atomic_path(path) as temporary, h5py.File(temporary, "w") as file:
-            file.attrs.update(
-                optimizer=self.optimizer, loss=self.loss, iterations=self.iterations,
-                evaluations=self.evaluations, wall_time=self.wall_time, scene=self.scene_toml,
-                best_start=self.best_start, stopped=self.reasons[self.best_start], warning=self.warning,
-            )
-            file.create_dataset("names", data=np.array(self.names, dtype="S"))
-            for group, values in (("params", self.params), ("stderr", self.stderr)):
-                for name, value in values.items():
-                    file.create_dataset(f"{group}/{name}", data=value)
-            file.create_dataset("covariance", data=self.covariance)
-            file.create_dataset("correlation", data=self.correlation)
-            for name, values in self.history.items():
-                file.create_dataset(f"history/{name}", data=values)
-            file.create_dataset("starts/initial", data=self.start_values)
-            file.create_dataset("starts/final", data=self.final_values)
-            file.create_dataset("starts/loss", data=self.final_losses)
-            file.create_dataset("time", data=self.time)
-            for name, values in self.probes.items():
-                file.create_dataset(f"probes/{name}", data=values)
-            for refinement, shift in self.numerical_shifts.items():
-                for name, value in zip(self.names, shift):
-                    file.create_dataset(f"numerical_shift/{refinement}/{name}", data=value)
-            for run in self.experiments:
-                file.create_dataset(f"experiments/{run.name}/time", data=run.time)
-                for name, values in run.probes.items():
-                    file.create_dataset(f"experiments/{run.name}/probes/{name}", data=values)
-        return path
+        return save_fit(self, path)
+
+    @classmethod
+    def load(cls, path) -> Fit:
+        """The Fit a calibration wrote with `save` (or `jaxmpm calibrate`); one SceneError
+        sentence if `path` is no calibration file."""
+        from inverse.fit_file import load_fit
+
+        return load_fit(path)

@@ -5,6 +5,7 @@
     jaxmpm calibrate CONFIG.toml [-o FIT.h5] [--resume] [--quiet]   (added by inverse.command)
     jaxmpm design DESIGN.toml [-o OUT.h5 | .csv | .png]             (added by inverse.design_command)
     jaxmpm plot OUT.h5 [-o OUT.png | .gif | .mp4] [--field q] [--snapshot -1] [--probes] [--mirror]
+    jaxmpm plot FIT.h5 [-o FIT.png]                                  (drawn by inverse.fit_plot)
     jaxmpm export OUT.h5 [-o OUT.pvd] [--revolve N]
 
 Exit status: 0 done; 1 the run stopped early (the output file keeps what was computed, marked
@@ -69,8 +70,9 @@ def build_parser():
     check.add_argument("--set", dest="assignments", action="append", default=[], metavar="KEY=VALUE",
                        help="override a scene value, as for run")
     check.add_argument("--quick", action="store_true", help="no timed steps and no run-time estimate: nothing compiled")
-    plot = commands.add_parser("plot", help="draw a run: points coloured by a field, or probe histories")
-    plot.add_argument("result", help="output HDF5 file of `jaxmpm run`")
+    plot = commands.add_parser("plot", help="draw a run (points coloured by a field, or probe histories) "
+                                            "or a calibration result")
+    plot.add_argument("result", help="output HDF5 file of `jaxmpm run` (or of `jaxmpm calibrate`)")
     plot.add_argument("-o", "--output", help="PNG, GIF or MP4 file (default: RESULT name with .png)")
     plot.add_argument("--field", help="colour by this field (default q; e.g. p, plastic_strain, displacement, speed)")
     plot.add_argument("--snapshot", type=int, help="snapshot index for a PNG (default -1, the last)")
@@ -98,6 +100,28 @@ def plugged_commands() -> dict:
     from importlib.metadata import entry_points
 
     return {point.name: point.load() for point in sorted(entry_points(group=COMMAND_GROUP), key=lambda p: p.name)}
+
+
+FILE_KIND_GROUP = "jaxmpm.file_kinds"
+
+
+def plugged_file_kind(path):
+    """The kind of HDF5 file another package writes and draws (the entry points of group
+    FILE_KIND_GROUP, e.g. the calibration result of `inverse.fit_plot`) that `path` is, or None.
+    A kind has `description`, `how_to_open`, `claims(open h5py file) -> bool` and
+    `plot(path, output)`."""
+    import h5py
+    from importlib.metadata import entry_points
+
+    try:
+        with h5py.File(path, "r") as file:
+            for point in sorted(entry_points(group=FILE_KIND_GROUP), key=lambda p: p.name):
+                kind = point.load()
+                if kind.claims(file):
+                    return kind
+    except OSError:           # not HDF5, or damaged: read_result says which
+        return None
+    return None
 
 
 def run_command(arguments):
@@ -259,13 +283,13 @@ def read_result(path):
         try:
             with h5py.File(path, "r") as file:
                 written_by_jaxmpm = "jaxmpm_version" in file.attrs
-                fit = "covariance" in file and "optimizer" in file.attrs
-                kind = "a calibration result (`jaxmpm calibrate`)" if fit else None
         except OSError:
             raise SceneError(f"{path!r} is damaged (HDF5 cannot open it, e.g. a copy cut short): "
                              "run the scene again, or with --resume if a full copy of the file exists.") from None
-        if kind:
-            raise SceneError(f"{path!r} is {kind}, not a run: open it with inverse.Fit in Python.") from None
+        kind = plugged_file_kind(path)
+        if kind is not None:
+            raise SceneError(f"{path!r} is {kind.description}, not a run: draw it with `jaxmpm plot`, "
+                             f"{kind.how_to_open}.") from None
         if written_by_jaxmpm:
             raise SceneError(f"{path!r} is a jaxmpm output file with parts missing or damaged ({error}).") from None
         raise SceneError(f"{path!r} is not a jaxmpm output file (written by `jaxmpm run`).") from None
@@ -278,6 +302,10 @@ def plot_command(arguments):
     from jaxmpm import plotting
 
     output = output_path(arguments.output, arguments.result, ".png")
+    if Path(arguments.result).is_file():
+        kind = plugged_file_kind(arguments.result)
+        if kind is not None:
+            return plot_other_kind(kind, arguments, output)
     allowed = (".png",) if arguments.probes else plotting.FORMATS
     plotting.check_output(output, allowed)        # before the file is read: name every type -o takes
     animation = output.suffix.lower() in (".gif", ".mp4")
@@ -298,6 +326,23 @@ def plot_command(arguments):
         if not -count <= snapshot < count:
             raise SceneError(f"--snapshot {snapshot} is out of range: the file has {count} snapshots.")
         plotting.save_snapshot(result, output, arguments.field, snapshot, arguments.mirror)
+    print(f"wrote {output}")
+    return 0
+
+
+RUN_PLOT_OPTIONS = ("field", "snapshot", "probes", "mirror")
+
+
+def plot_other_kind(kind, arguments, output):
+    """`jaxmpm plot` of a file another package drew (`plugged_file_kind`): one PNG."""
+    from jaxmpm import plotting
+
+    plotting.check_output(output, (".png",))
+    for option in RUN_PLOT_OPTIONS:
+        value = getattr(arguments, option)
+        if value not in (None, False):
+            raise SceneError(f"--{option} draws the output of a run; {str(arguments.result)!r} is {kind.description}.")
+    kind.plot(arguments.result, output)
     print(f"wrote {output}")
     return 0
 

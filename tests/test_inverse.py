@@ -239,6 +239,10 @@ def test_interrupted_calibration_resumes_where_it_would_have_ended(tmp_path):
     assert resumed.iterations == whole.iterations
     np.testing.assert_allclose(resumed.values, whole.values, rtol=1e-12)
     np.testing.assert_allclose(resumed.history["loss"], whole.history["loss"], rtol=1e-12)
+    # the time counts the session before the resume: at least its three iterations
+    assert resumed.cost["before_resume"] >= np.sum(resumed.history["seconds"][:3]) > 0.0
+    assert resumed.wall_time > resumed.cost["before_resume"] + np.sum(resumed.history["seconds"][3:])
+    assert "before the resume" in resumed.summary()
 
 
 def test_a_calibration_interrupted_in_its_first_iteration_resumes(tmp_path, monkeypatch):
@@ -442,3 +446,82 @@ def test_a_levenberg_marquardt_fit_ending_pinned_at_a_bound_reports_its_covarian
                             max_iterations=60, progress=False)
     assert fit.params["sand.poisson"] == pytest.approx(0.2, abs=1e-9)
     assert np.isfinite(fit.stderr["sand.young"]) and fit.stderr["sand.young"] > 0
+
+
+def test_a_fit_file_loads_back_to_the_fit_that_wrote_it_and_plots(tmp_path, capsys, monkeypatch):
+    from jaxmpm.cli import main
+
+    monkeypatch.chdir(tmp_path)            # the figure's default name is the file's, in the working folder
+    fit = inverse.calibrate(twin_simulation(), twin_observations(1e-5), FIT, starts=[WRONG], max_iterations=2,
+                            progress=False)
+    path = fit.save(tmp_path / "fit.h5")
+    loaded = inverse.Fit.load(path)
+    for field in ("names", "values", "loss", "covariance", "jacobian", "start_values", "final_values", "final_losses",
+                  "best_start", "reasons", "iterations", "evaluations", "wall_time", "optimizer", "scene_toml",
+                  "compile_seconds", "iteration_compile_seconds", "earlier_seconds", *fit.history):
+        expected = fit.history[field] if field in fit.history else getattr(fit, field)
+        got = loaded.history[field] if field in fit.history else getattr(loaded, field)
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(expected), err_msg=field)
+    for run, again in zip(fit.experiments, loaded.experiments, strict=True):
+        assert again.name == run.name and again.fixed == run.fixed
+        for name, channel in run.observations.channels.items():
+            for part in ("times", "values", "components", "sigma", "window"):
+                np.testing.assert_array_equal(getattr(again.observations.channels[name], part), getattr(channel, part))
+        for name, values in run.probes.items():
+            np.testing.assert_array_equal(again.probes[name], values)
+    assert loaded.summary() == fit.summary()
+    assert fit.jacobian.shape == (sum(c.values.size for c in fit.observations.channels.values()), len(FIT))
+
+    # the command draws it: the loss and parameter histories, 3 error ellipses, 3 observed components
+    assert main(["plot", str(path)]) == 0
+    assert (tmp_path / "fit.png").stat().st_size > 10_000
+    assert len(fit.plot().axes) >= 1 + 3 + 3 + 3
+    for options, words in ((["--field", "p"], "--field draws the output of a run"),
+                           (["-o", str(tmp_path / "fit.gif")], "the file type must be .png")):
+        assert main(["plot", str(path), *options]) == 2
+        assert words in capsys.readouterr().err
+    assert main(["export", str(path)]) == 2
+    assert "is a calibration result (`jaxmpm calibrate`), not a run: draw it with `jaxmpm plot`" in capsys.readouterr().err
+
+    # a file cut short is called damaged; a run's output is not taken for a fit
+    (tmp_path / "cut.h5").write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(SceneError, match="is damaged"):
+        inverse.Fit.load(tmp_path / "cut.h5")
+    run = jaxmpm.simulate(jaxmpm.Scene.from_toml(TWIN), progress=False).save(tmp_path / "run.h5")
+    with pytest.raises(SceneError, match="is the output of a run"):
+        inverse.Fit.load(run)
+
+
+def test_a_fit_file_written_before_observations_and_jacobian_were_stored_still_loads(tmp_path):
+    import h5py
+
+    fit = inverse.calibrate(twin_simulation(), twin_observations(), {"sand.friction_angle": (15.0, 40.0)},
+                            max_iterations=1, progress=False)
+    path = fit.save(tmp_path / "old.h5")
+    with h5py.File(path, "r+") as file:          # what a file of the earlier layout lacks
+        for attribute in ("file_kind", "compile_seconds", "iteration_compile_seconds", "earlier_seconds"):
+            del file.attrs[attribute]
+        for key in ("values", "jacobian", "starts/stopped", *(f"experiments/{run.name}/observations"
+                                                               for run in fit.experiments)):
+            del file[key]
+    loaded = inverse.Fit.load(path)
+    np.testing.assert_array_equal(loaded.values, fit.values)
+    assert loaded.jacobian is None and loaded.observations is None
+    assert loaded.reasons[loaded.best_start] == fit.reasons[fit.best_start]
+    assert "first iteration" in loaded.summary() and "nan s" not in loaded.summary()
+    loaded.plot()                                 # no observations: the histories and no data panels
+
+
+def test_the_compile_clock_counts_compiling_only():
+    from inverse.compile_clock import CompileClock
+
+    @jax.jit
+    def fresh(x):
+        return jnp.sin(x) * 1.2345678    # a constant no other test compiles
+
+    with CompileClock() as first:
+        fresh(jnp.arange(7.0)).block_until_ready()
+    with CompileClock() as again:             # compiled already: nothing to count
+        fresh(jnp.arange(7.0)).block_until_ready()
+    assert 0.0 < first.seconds <= first.elapsed
+    assert again.seconds == 0.0
