@@ -169,8 +169,9 @@ class Fit:
         }
 
     def identifiability(self, relative=0.1, correlated=0.95) -> dict:
-        """{path: verdict}: "identified" if its relative standard error is below `relative` and
-        it is not correlated beyond `correlated` with another; otherwise why not."""
+        """{path: verdict}: "identified" if its relative standard error is below `relative`,
+        "poorly identified" if above, "not identified" if the data do not constrain it; and,
+        on the line of each of them, the parameters it is correlated with beyond `correlated`."""
         verdicts = {}
         correlation = self.correlation
         for i, name in enumerate(self.names):

@@ -470,6 +470,15 @@ def test_a_fit_file_loads_back_to_the_fit_that_wrote_it_and_plots(tmp_path, caps
         for name, values in run.probes.items():
             np.testing.assert_array_equal(again.probes[name], values)
     assert loaded.summary() == fit.summary()
+    # a correlated pair is named on both parameters' lines, the poorly identified one's too
+    import dataclasses
+
+    errors = np.abs(fit.values) * np.array([0.01, 0.5, 0.05])
+    correlation = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.99], [0.0, 0.99, 1.0]])
+    verdicts = dataclasses.replace(fit, covariance=correlation * np.outer(errors, errors)).identifiability()
+    assert verdicts["sand.friction_angle"].startswith("identified") and "correlated" not in verdicts["sand.friction_angle"]
+    assert verdicts["sand.fluidity"].startswith("poorly identified") and "correlated with sand.exponent" in verdicts["sand.fluidity"]
+    assert verdicts["sand.exponent"].startswith("identified") and "correlated with sand.fluidity" in verdicts["sand.exponent"]
     assert fit.jacobian.shape == (sum(c.values.size for c in fit.observations.channels.values()), len(FIT))
 
     # the command draws it: the loss and parameter histories, 3 error ellipses, 3 observed components
