@@ -30,7 +30,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).parent))
 
 from compile_times import machine_sentence, run_each_scene  # noqa: E402  (same directory)
-from throughput import write_section  # noqa: E402
+from common import write_section  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 BEGIN, END = "<!-- calibration_passes:begin -->", "<!-- calibration_passes:end -->"

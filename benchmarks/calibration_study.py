@@ -45,7 +45,7 @@ import calibrate_rates as rates  # noqa: E402
 import inverse  # noqa: E402
 import jaxmpm  # noqa: E402
 from contact_study import Table  # noqa: E402
-from throughput import machine_info, write_section  # noqa: E402
+from common import machine_info, write_section  # noqa: E402
 
 WALL_SCENE = ROOT / "examples" / "calibrate_wall_scene.toml"
 WALL_TRUTH = {"sand.friction_angle": 30.0, "sand.fluidity": 5.0, "sand.exponent": 2.0}

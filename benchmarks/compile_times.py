@@ -26,7 +26,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from throughput import machine_info, write_section  # noqa: E402  (same directory)
+from common import machine_info, write_section  # noqa: E402  (same directory)
 
 ROOT = Path(__file__).resolve().parents[1]
 BEGIN, END = "<!-- compile_times:begin -->", "<!-- compile_times:end -->"

@@ -28,7 +28,7 @@ DOC = ROOT / "docs" / "contact.md"
 G = 9.81
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from throughput import write_section  # noqa: E402
+from common import write_section  # noqa: E402
 
 
 class Table:

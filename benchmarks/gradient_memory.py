@@ -33,7 +33,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
-from throughput import block_scene, write_section  # noqa: E402
+from common import block_scene, write_section  # noqa: E402
 
 import jaxmpm  # noqa: E402
 from jaxmpm.kernels.xla_options import compiler_options  # noqa: E402

@@ -82,7 +82,7 @@ def main():
     jax.config.update("jax_enable_x64", True)
     import jaxmpm
     from plot_pile_driving import curves, force_at, read_pile
-    from throughput import write_section
+    from common import write_section
 
     out = Path(arguments.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -46,7 +46,7 @@ import taichi as ti
 
 from jaxmpm.solver import MASS_FLOOR
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))   # throughput.block_scene
+sys.path.insert(0, str(Path(__file__).resolve().parent))   # common.block_scene
 
 GHOST = 1          # node layers beyond each edge (quadratic B-spline)
 SUPPORT = 3        # stencil nodes per axis
@@ -405,7 +405,7 @@ def check(steps: int, fast_math: bool) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     from jaxmpm import Simulation
-    from throughput import block_scene
+    from common import block_scene
 
     sim = Simulation(block_scene(128, "float64", steps, "drucker_prager", "bspline2", transfer="apic"))
     params = sim.cast(sim.params)

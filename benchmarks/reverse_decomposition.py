@@ -76,7 +76,8 @@ def main():
 
     import jaxmpm
     from jaxmpm.kernels.xla_options import NO_YNNPACK
-    from throughput import SIZES, block_scene
+    from common import block_scene
+    from throughput import SIZES
 
     options = NO_YNNPACK if args.jit_options == "noynn" else {}
     cells = args.cells or SIZES[args.points]

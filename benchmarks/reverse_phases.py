@@ -38,7 +38,8 @@ def main():
     from jaxmpm import solver
     from jaxmpm.grid import apply_edge_conditions, boundary_mask
     from jaxmpm.kernels.xla_options import NO_YNNPACK
-    from throughput import SIZES, block_scene
+    from common import block_scene
+    from throughput import SIZES
 
     options = NO_YNNPACK if args.noynn else {}
     sim = jaxmpm.Simulation(block_scene(SIZES[args.points], args.dtype, 200, args.material, args.shape))

@@ -495,7 +495,7 @@ def machine_text(data):
 
 
 def write_report(data):
-    from throughput import write_section
+    from common import write_section
 
     add_reference_errors(data)
     if not DOC.exists():
@@ -523,7 +523,7 @@ def main():
         import jax
 
         jax.config.update("jax_enable_x64", True)
-        from throughput import machine_info
+        from common import machine_info
 
         level = "quick" if arguments.quick else "full"
         plan = [(name, c) for name in arguments.problems for c in configurations(PROBLEMS[name], level)]

@@ -484,7 +484,7 @@ def machine_info() -> str:
 
 def write_section(name: str, body: str):
     """Replace (or append) the part of docs/stability.md between this section's markers."""
-    from throughput import write_section as write_between
+    from common import write_section as write_between
 
     write_between(f"<!-- {name}:begin -->", f"<!-- {name}:end -->", body, DOC)
 

@@ -26,11 +26,8 @@ bspline2 + APIC step in benchmarks/reference_taichi.py, and writes its own secti
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
-import re
 import resource
 import statistics
 import subprocess
@@ -38,8 +35,8 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-DOC = ROOT / "docs" / "benchmarks.md"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import DOC, ROOT, STEPS_PER_CALL, block_scene, machine_info, write_section  # noqa: E402
 BEGIN, END = "<!-- throughput:begin -->", "<!-- throughput:end -->"
 
 SIZES = {5_184: 72, 16_384: 128, 65_536: 256}   # points -> cells across the 1 m box (block: 0.5 m wide, 2 x 2 per cell)
@@ -63,47 +60,7 @@ CASES = [  # (points, dtype, material, shape function, transfer)
     for dtype in ("float32", "float64")
 ] + [(16_384, dtype, "perzyna", "bspline2", "apic") for dtype in ("float32", "float64")]   # the viscoplastic sand
 QUICK_CASES = [case for case in CASES if case[0] == 5_184 and case[1] == "float32"]
-STEPS_PER_CALL = 100                   # steps per `sim._advance` call (one output interval)
 GRADIENT_STEPS = 200                   # steps of the rollout differentiated for the ratio
-
-
-# --------------------------------------------------------------------------- the scene
-
-
-def block_material(material: str):
-    """The block's material in the benchmark scene (see `block_scene`)."""
-    from jaxmpm import DruckerPrager, LinearElastic
-
-    if material == "elastic":
-        return LinearElastic(density=1000.0, young=1.0e6, poisson=0.3)
-    viscous = {"fluidity": 5.0, "exponent": 2.0} if material == "perzyna" else {}
-    return DruckerPrager(density=1000.0, young=1.0e6, poisson=0.3, friction_angle=30.0, **viscous)
-
-
-def block_scene(cells: int, dtype: str, steps: int, material: str = "elastic", shape: str = "linear",
-                transfer: str = "flip"):
-    """The benchmark scene: `steps` steps in outputs of STEPS_PER_CALL steps. material:
-    "elastic", "drucker_prager" (the same block as sand, phi = 30 deg, which slumps) or
-    "perzyna" (that sand viscoplastic, gamma = 5 1/s, N = 2);
-    transfer: "flip" (FLIP 0.99) or "apic"."""
-    from jaxmpm import Body, Boundaries, Grid, Numerics, Probe, Rectangle, Scene
-
-    cell = 1.0 / cells
-    dt = 0.4 * cell / 40.0            # c_p = 36.7 m/s for these moduli: CFL about 0.37
-    return Scene(
-        name=f"elastic_block_{cells}",
-        grid=Grid(size=(1.0, 1.0), cell=cell, boundaries=Boundaries("slip", "slip", "fixed", "free")),
-        materials={"block": block_material(material)},
-        bodies=(Body("block", "block", Rectangle((0.25, 0.0), (0.75, 0.5))),),
-        duration=dt * steps,
-        dt=dt,
-        output_every=dt * min(steps, STEPS_PER_CALL),
-        numerics=Numerics(shape=shape, transfer=transfer, ppc=2, flip=0.99, update="musl", dtype=dtype),
-        probes=(
-            Probe("top", "displacement", at=(0.5, 0.5)),
-            Probe("centre_of_mass", "body_displacement", body="block"),
-        ),
-    )
 
 
 # --------------------------------------------------------------------------- one case (subprocess)
@@ -221,42 +178,6 @@ def run_case(points: int, dtype: str, material: str, shape: str, transfer: str, 
 # --------------------------------------------------------------------------- the report
 
 
-def machine_info() -> dict:
-    import jax
-    import jaxlib
-
-    cpu = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    memory = "unknown"
-    try:
-        kib = int(re.search(r"MemTotal:\s+(\d+)", Path("/proc/meminfo").read_text()).group(1))
-        memory = f"{kib / 2**20:.0f} GiB"
-    except (OSError, AttributeError):
-        pass
-    try:
-        commit = subprocess.run(
-            ["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True, text=True
-        ).stdout.strip()
-    except OSError:
-        commit = "unknown"
-    return {
-        "date": datetime.date.today().isoformat(),
-        "cpu": cpu,
-        "cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
-        "memory": memory,
-        "python": platform.python_version(),
-        "jax": f"{jax.__version__} (jaxlib {jaxlib.__version__}, {jax.default_backend()})",
-        "commit": commit or "unknown",
-        "load": os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan"),
-    }
-
-
 def table(results: list[dict], machine: dict, load_before: float) -> str:
     lines = [
         f"Machine: {machine['cpu']}, {machine['cores']} cores, {machine['memory']}; "
@@ -311,20 +232,6 @@ and JAX runtime and of compilation); XLA temp is the compiled gradient's
 cases with it. Timings on this shared 2-core VM move by +-10 % when it is idle and by up to 2x
 when other jobs run (see the load average): compare rows of one run, not runs. Regenerate with
 `python benchmarks/throughput.py` (about 15 minutes; `--quick` for the 5k float32 rows)."""
-
-
-def write_section(begin: str, end: str, body: str, doc: Path = DOC):
-    """Replace (or append) the part of docs/benchmarks.md between the markers begin and end."""
-    doc.parent.mkdir(parents=True, exist_ok=True)
-    section = f"{begin}\n{body}\n{end}"
-    current = doc.read_text() if doc.exists() else (
-        "# Benchmarks\n\nFigures written by the scripts in `benchmarks/`; each script updates its own section.\n"
-    )
-    if begin in current and end in current:
-        head, rest = current.split(begin, 1)
-        doc.write_text(head + section + rest.split(end, 1)[1])
-    else:
-        doc.write_text(current.rstrip() + "\n\n" + section + "\n")
 
 
 def write_doc(text: str):

@@ -1,5 +1,6 @@
 """`jaxmpm calibrate CONFIG.toml`: the calibration command, which inverse adds to the `jaxmpm`
-command (entry point group `jaxmpm.commands` in pyproject.toml; jaxmpm does not import inverse).
+command (entry point group `jaxmpm.commands` in pyproject.toml; jaxmpm does not import inverse),
+and the calibration file as a kind of file `jaxmpm plot` draws (group `jaxmpm.file_kinds`).
 
     jaxmpm calibrate CONFIG.toml [-o FIT.h5] [--resume] [--keep-checkpoint] [--quiet]
 """
@@ -59,3 +60,27 @@ class CalibrateCommand:
 
 
 CALIBRATE = CalibrateCommand()
+
+
+class CalibrationFile:
+    """The calibration result as a kind of file `jaxmpm plot` draws (jaxmpm.cli.plugged_file_kind)."""
+
+    description = "a calibration result (`jaxmpm calibrate`)"
+    how_to_open = "or open it with inverse.Fit.load in Python"
+
+    @staticmethod
+    def claims(file) -> bool:
+        from inverse.fit_file import is_fit_file
+
+        return is_fit_file(file)
+
+    @staticmethod
+    def plot(path, output):
+        import matplotlib.pyplot as plt
+
+        from inverse.fit import Fit
+
+        plt.close(Fit.load(path).plot(output))
+
+
+CALIBRATION_FILE = CalibrationFile()

@@ -248,4 +248,5 @@ class Fit:
         sentence if `path` is no calibration file."""
         from inverse.fit_file import load_fit
 
-        return load_fit(path)
+        fields = load_fit(path)
+        return cls(**{**fields, "experiments": [ExperimentFit(**run) for run in fields["experiments"]]})

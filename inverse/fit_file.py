@@ -1,9 +1,10 @@
 """The calibration's HDF5 file (docs/output_files.md): `save_fit` writes a `Fit` atomically,
-`load_fit` reads it back to the same values, bit for bit.
+`load_fit` reads back the keyword arguments that rebuild it, bit for bit (`Fit.save`,
+`Fit.load`; this module reads and writes fields and knows no class of inverse.fit).
 
 The file says what it is in its attribute `file_kind` = "calibration": `jaxmpm plot FIT.h5`
-finds `CALIBRATION_FILE` among the entry points of group `jaxmpm.file_kinds` (pyproject.toml),
-so that jaxmpm reads no calibration file itself. Files written before
+finds `inverse.command.CALIBRATION_FILE` among the entry points of group `jaxmpm.file_kinds`
+(pyproject.toml), so that jaxmpm reads no calibration file itself. Files written before
 these keys (no `file_kind`, `values`, `jacobian`, `starts/stopped`, observations or timing)
 load too: what they lack is None, NaN or empty.
 """
@@ -87,8 +88,9 @@ def is_fit_file(file) -> bool:
     return file.attrs.get("file_kind") == FILE_KIND or ("covariance" in file and "optimizer" in file.attrs)
 
 
-def load_fit(path):
-    """The `Fit` in `path`; one SceneError sentence if it is no calibration file or is damaged."""
+def load_fit(path) -> dict:
+    """The fields of the `Fit` in `path` (its experiments as dicts of the fields of
+    `ExperimentFit`); one SceneError sentence if it is no calibration file or is damaged."""
     import h5py
 
     if not Path(path).is_file():
@@ -115,10 +117,8 @@ def not_a_fit(path, file) -> str:
     return f"{path!r} is not a calibration result (written by `jaxmpm calibrate` or Fit.save)."
 
 
-def read_fit(file):
-    """The Fit in an open calibration file."""
-    from inverse.fit import Fit
-
+def read_fit(file) -> dict:
+    """The fields of the Fit in an open calibration file."""
     attrs = file.attrs
     names = tuple(name.decode() for name in file["names"][()])
     history = {name: data[()] for name, data in file["history"].items()}
@@ -131,7 +131,7 @@ def read_fit(file):
         reasons[best] = str(attrs["stopped"])
     shifts = {refinement: np.array([group[name][()] for name in names])
               for refinement, group in file.get("numerical_shift", {}).items()}
-    return Fit(
+    return dict(
         names=names,
         values=file["values"][()] if "values" in file else np.array([file[f"params/{name}"][()] for name in names]),
         loss=float(attrs["loss"]),
@@ -162,9 +162,9 @@ def read_fit(file):
     )
 
 
-def read_experiment(name, group):
-    """An ExperimentFit from /experiments/NAME (observations None in files written before them)."""
-    from inverse.fit import ExperimentFit
+def read_experiment(name, group) -> dict:
+    """The fields of an ExperimentFit from /experiments/NAME (observations None in files written
+    before them)."""
     from inverse.observations import Channel, Observations
 
     observations = None
@@ -176,26 +176,6 @@ def read_experiment(name, group):
                            window=float(measured.attrs["window"]))
             for probe, measured in group["observations"].items()
         })
-    return ExperimentFit(name=name, observations=observations, time=group["time"][()],
+    return dict(name=name, observations=observations, time=group["time"][()],
                          probes={probe: data[()] for probe, data in group["probes"].items()},
                          fixed=json.loads(group.attrs.get("fixed", "{}")))
-
-
-class CalibrationFile:
-    """The calibration result as a kind of file `jaxmpm plot` draws (jaxmpm.cli.plugged_file_kind)."""
-
-    description = "a calibration result (`jaxmpm calibrate`)"
-    how_to_open = "or open it with inverse.Fit.load in Python"
-
-    @staticmethod
-    def claims(file) -> bool:
-        return is_fit_file(file)
-
-    @staticmethod
-    def plot(path, output):
-        import matplotlib.pyplot as plt
-
-        plt.close(load_fit(path).plot(output))
-
-
-CALIBRATION_FILE = CalibrationFile()
