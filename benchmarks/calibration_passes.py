@@ -50,7 +50,7 @@ def measure(path: Path, repeats: int) -> dict:
 
     import jaxmpm
     from inverse.levenberg_marquardt import residuals_and_jacobian
-    from jaxmpm.tracing import collector_paused
+    from jaxmpm.running.tracing import collector_paused
     from jaxmpm.kernels.xla_options import jit_reverse_mode, jit_with_options
 
     scene = jaxmpm.load_scene(path)

@@ -10,7 +10,7 @@ the scene), and the gradient of a misfit of its probe histories with respect to 
 material parameter, both with the XLA options jaxmpm compiles them with
 (`jaxmpm.kernels.xla_options`). Scenes without probes get a probe of the mean displacement of their
 first body. Trace (Python tracing and lowering to XLA, with Python's garbage collector paused as
-jaxmpm pauses it for its own programs: `jaxmpm.tracing`) and XLA compilation are timed apart.
+jaxmpm pauses it for its own programs: `jaxmpm.running.tracing`) and XLA compilation are timed apart.
 Each scene runs in a fresh process (nothing cached in memory; JAX's persistent compilation
 cache off), float64 as the scenes' own dtype asks (JAX's 64-bit mode on).
 """
@@ -53,7 +53,7 @@ def measure(path: Path) -> dict:
     import jax.numpy as jnp
 
     import jaxmpm
-    from jaxmpm.tracing import collector_paused
+    from jaxmpm.running.tracing import collector_paused
     from jaxmpm.kernels.xla_options import jit_reverse_mode, jit_with_options
 
     scene = jaxmpm.load_scene(path)

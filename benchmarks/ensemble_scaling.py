@@ -25,7 +25,7 @@ import json, sys, time
 import jax
 jax.config.update("jax_enable_x64", True)
 import jaxmpm
-from jaxmpm.ensembles import stack
+from jaxmpm.running.ensembles import stack
 members = int(sys.argv[1])
 text = '''
 [scene]

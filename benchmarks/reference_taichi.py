@@ -7,7 +7,7 @@
 Needs the optional `bench` extra (`pip install -e .[bench]`); jaxmpm itself never imports
 taichi. The kernel runs THE scheme jaxmpm runs for one free Drucker-Prager body with
 numerics shape = "bspline2", transfer = "apic", update = "musl" (one velocity field, plane
-strain, no damping, no contact), step by step as jaxmpm/solver.py does it:
+strain, no damping, no contact), step by step as jaxmpm/physics/solver.py does it:
 
     stencil    quadratic B-spline, one ghost node layer: base = floor(x / h + 1 - 1/2)
     P2G        m_I = sum m_p N_I,  p_I = sum m_p N_I (v_p + C_p (x_I - x_p)),
@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 import taichi as ti
 
-from jaxmpm.solver import MASS_FLOOR
+from jaxmpm.physics.solver import MASS_FLOOR
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))   # common.block_scene
 

@@ -7,7 +7,7 @@ For the throughput scene (benchmarks/throughput.py), in one process, alternating
   jax.jit(jax.grad(loss)); their ratio; XLA temp memory of the gradient;
 - per step, in a scan of K steps: forward step; backward step alone (the vjp of one step
   applied K times to its own residuals); forward + backward of one step (jax.vjp inside the scan).
-Variants are `Checkpointing` settings (see jaxmpm.rollout).
+Variants are `Checkpointing` settings (see jaxmpm.running.rollout).
 """
 
 import argparse
@@ -125,7 +125,7 @@ def main():
         initial = sim.initial_state(params)
         advance_of = lambda p: sim._advance_and_observe(p, initial.particles.x)   # noqa: E731
         # a state a few steps in (the block is moving)
-        state = jax.jit(lambda p, s: jaxmpm.rollout.scan_steps(advance_of(p), s, 20)[0])(params, initial)
+        state = jax.jit(lambda p, s: jaxmpm.running.rollout.scan_steps(advance_of(p), s, 20)[0])(params, initial)
         floats, info = split_floats(state)
         pfloats, pinfo = split_floats(params)
         K = 20

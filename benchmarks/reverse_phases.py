@@ -35,8 +35,8 @@ def main():
     import jax.numpy as jnp
 
     import jaxmpm
-    from jaxmpm import solver
-    from jaxmpm.grid import apply_edge_conditions, boundary_mask
+    from jaxmpm.physics import solver
+    from jaxmpm.physics.grid import apply_edge_conditions, boundary_mask
     from jaxmpm.kernels.xla_options import NO_YNNPACK
     from common import block_scene
     from throughput import SIZES
@@ -45,7 +45,7 @@ def main():
     sim = jaxmpm.Simulation(block_scene(SIZES[args.points], args.dtype, 200, args.material, args.shape))
     params = sim.cast(sim.params)
     initial = sim.initial_state(params)
-    state = jax.jit(lambda p, s: jaxmpm.rollout.scan_steps(sim._advance_and_observe(p, s.particles.x), s, 20)[0])(params, initial)
+    state = jax.jit(lambda p, s: jaxmpm.running.rollout.scan_steps(sim._advance_and_observe(p, s.particles.x), s, 20)[0])(params, initial)
     structure, layout, dt = sim.structure, sim.structure.layout, sim.structure.dt
     mask = boundary_mask(layout, structure.boundaries, state.particles.x.dtype)
 

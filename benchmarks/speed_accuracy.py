@@ -108,7 +108,7 @@ class Bar:
         return state.replace(particles=state.particles.replace(v=jnp.stack([speed, jnp.zeros_like(speed)], axis=1)))
 
     def measure(self, sim, result):
-        from jaxmpm.probes import nearest_point
+        from jaxmpm.physics.probes import nearest_point
 
         t = result.time
         x0 = np.asarray(sim.seeds.positions)

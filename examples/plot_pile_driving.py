@@ -50,9 +50,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxmpm  # noqa: E402
-from jaxmpm.plotting import draw_points, save_png  # noqa: E402
-from jaxmpm.seeding import seed_bodies  # noqa: E402
-from jaxmpm.snapshots import Snapshots  # noqa: E402
+from jaxmpm.pictures.plotting import draw_points, save_png  # noqa: E402
+from jaxmpm.scene.seeding import seed_bodies  # noqa: E402
+from jaxmpm.pictures.snapshots import Snapshots  # noqa: E402
 
 DPI = 100
 PANELS = 3                  # penetrations shown in the snapshot figure

@@ -30,8 +30,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxmpm  # noqa: E402
-from jaxmpm.plotting import save_png  # noqa: E402
-from jaxmpm.snapshots import Snapshots  # noqa: E402
+from jaxmpm.pictures.plotting import save_png  # noqa: E402
+from jaxmpm.pictures.snapshots import Snapshots  # noqa: E402
 
 ACTIVE_SCENE = "retaining_wall_active"
 AVERAGE_STEPS = 100      # the contact force changes sign step to step at single nodes: average it

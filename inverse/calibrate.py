@@ -50,13 +50,13 @@ from inverse.experiments import (
 from inverse.fit import ExperimentFit, Fit, gauss_newton
 from inverse.numerical_error import REFINEMENTS, numerical_shifts, residuals_at
 from inverse.parameters import ParameterSpace
-from jaxmpm.ensembles import batch_mesh, is_spread, spread_over_devices
+from jaxmpm.running.ensembles import batch_mesh, is_spread, spread_over_devices
 from jaxmpm.errors import SceneError, SimulationError
-from jaxmpm.parameters import resolve
+from jaxmpm.scene.parameters import resolve
 from jaxmpm.files import atomic_path
-from jaxmpm.runner import describe_failure
-from jaxmpm.time_step import exceeds
-from jaxmpm.tracing import collector_paused
+from jaxmpm.running.runner import describe_failure
+from jaxmpm.physics.time_step import exceeds
+from jaxmpm.running.tracing import collector_paused
 from jaxmpm.kernels.xla_options import jit_reverse_mode, jit_with_options
 
 OPTIMIZERS = ("lm", "lbfgs", "adam")
@@ -381,7 +381,7 @@ def _check_options(optimizer, max_iterations, checkpoint_every, gtol, ftol):
 def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, learning_rate,
                seed, checkpoint, checkpoint_every, resume, progress, callback, refinements, timing):
     """The calibration; `timing` (a `CompileClock` opened before anything ran) times it."""
-    from jaxmpm.progress import progress_bar
+    from jaxmpm.running.progress import progress_bar
 
     _check_options(optimizer, max_iterations, checkpoint_every, gtol, ftol)
     dtypes = {e.sim.dtype for e in experiments}
@@ -418,7 +418,7 @@ def _calibrate(experiments, fit, optimizer, starts, max_iterations, gtol, ftol, 
     place = functools.partial(over_devices, replicate=is_spread((data, bases)))
     z0 = place(z0)
     fingerprint = _fingerprint(experiments, space, optimizer, learning_rate, start_values, data)
-    with collector_paused():        # the first call of each program traces it (jaxmpm.tracing)
+    with collector_paused():        # the first call of each program traces it (jaxmpm.running.tracing)
         state_shape = problem.start_shape(z0, data, bases)
     treedef = jax.tree_util.tree_structure(state_shape)
     if resume and checkpoint is not None and Path(checkpoint).exists():
@@ -641,7 +641,7 @@ def _fingerprint(experiments, space, optimizer_name, learning_rate, start_values
 
 def over_devices(z, replicate=False):
     """The starts (S, P) sharded over every device along S when S divides evenly (the
-    compiled iteration then runs its starts where they are, jaxmpm/ensembles.py); otherwise
+    compiled iteration then runs its starts where they are, jaxmpm/running/ensembles.py); otherwise
     as they are, or a copy on every device with `replicate` (the experiments are spread: each
     iteration then sees its inputs laid out alike and compiles once)."""
     if replicate:

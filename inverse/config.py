@@ -122,7 +122,7 @@ class CalibrationConfig:
         reverse mode may keep (`jaxmpm.Checkpointing.budget`); Levenberg-Marquardt's forward
         mode keeps none."""
         import jaxmpm
-        from jaxmpm.rollout import STORE_BUDGET_BYTES
+        from jaxmpm.running.rollout import STORE_BUDGET_BYTES
         from inverse.experiments import Experiment
 
         sharing = {}

@@ -49,7 +49,7 @@ from inverse.parameters import ParameterSpace
 from jaxmpm.errors import SceneError
 from jaxmpm.files import atomic_path
 from jaxmpm.kernels.xla_options import jit_with_options
-from jaxmpm.parameters import resolve
+from jaxmpm.scene.parameters import resolve
 
 THRESHOLD = 1e-8        # a scaled eigenvalue below THRESHOLD * the largest: a direction not identified
 TAKES_PART = 1e-6       # a parameter whose weight in such a direction exceeds this is not identified

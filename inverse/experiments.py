@@ -28,14 +28,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from inverse.observations import Observations, check_against, default_scale, load_observations
-from jaxmpm.ensembles import spread_over_devices
+from jaxmpm.running.ensembles import spread_over_devices
 from jaxmpm.errors import SceneError
-from jaxmpm.parameters import resolve, value_at, with_values
+from jaxmpm.scene.parameters import resolve, value_at, with_values
 
 
 def as_observations(source, sigma: dict | None = None, label: str = "observations") -> Observations:
     """Observations from whatever a user holds (see the module docstring)."""
-    from jaxmpm.results import Result
+    from jaxmpm.running.results import Result
 
     if isinstance(source, Observations):
         if sigma:
@@ -250,7 +250,7 @@ def problem_arguments(experiments, groups):
 
 def members_over_devices(groups, data, bases):
     """(data, bases) with the member axis of each group of several experiments sharded over
-    the devices when the members divide evenly between them (jaxmpm/ensembles.py): each
+    the devices when the members divide evenly between them (jaxmpm/running/ensembles.py): each
     device then runs its members' simulations, and only their residuals are gathered."""
     spread = [spread_over_devices((d, b)) if len(group.members) > 1 else (d, b)
               for group, d, b in zip(groups, data, bases)]

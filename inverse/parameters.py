@@ -1,7 +1,7 @@
 """The parameters being fitted, and the unconstrained coordinates the optimiser works in.
 
 A fitted parameter is named by its dotted name in `sim.params` ("sand.friction_angle",
-"materials.sand.friction_angle", "contacts.backfill/wall.friction"; see `jaxmpm.parameters`)
+"materials.sand.friction_angle", "contacts.backfill/wall.friction"; see `jaxmpm.scene.parameters`)
 and keeps the name it was given in the results. Bounds decide the transform:
   (low, high)   scaled logit:  x = low + (high - low) sigmoid(z)
   (low, None)   log shift:     x = low + exp(z)          (e.g. (0, None) for a positive value)
@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmpm.errors import SceneError
-from jaxmpm.parameters import location_name, resolve, value_at, with_values
+from jaxmpm.scene.parameters import location_name, resolve, value_at, with_values
 
 
 @dataclasses.dataclass(frozen=True)

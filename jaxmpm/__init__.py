@@ -13,26 +13,26 @@ import importlib
 # `import jaxmpm.cli` starts in milliseconds and the `jaxmpm` command can take Ctrl-C quietly
 # while JAX itself is still importing (`jaxmpm.cli.interrupts_end_quietly`).
 _PUBLIC = {
-    "use_compilation_cache": "jaxmpm.compilation_cache",
-    "drive": "jaxmpm.driver",
-    "ensemble": "jaxmpm.ensembles",
+    "use_compilation_cache": "jaxmpm.running.compilation_cache",
+    "drive": "jaxmpm.running.driver",
+    "ensemble": "jaxmpm.running.ensembles",
     "SceneError": "jaxmpm.errors",
     "SimulationError": "jaxmpm.errors",
     "DruckerPrager": "jaxmpm.materials",
     "LinearElastic": "jaxmpm.materials",
-    "Result": "jaxmpm.results",
-    "with_values": "jaxmpm.parameters",
-    "Checkpointing": "jaxmpm.rollout",
+    "Result": "jaxmpm.running.results",
+    "with_values": "jaxmpm.scene.parameters",
+    "Checkpointing": "jaxmpm.running.rollout",
     **{name: "jaxmpm.scene" for name in (
         "Body", "Boundaries", "Contact", "Geostatic", "Grid", "Kinematics", "Numerics", "Polygon", "Probe",
         "Rectangle", "Scene", "load_scene")},
-    "Simulation": "jaxmpm.simulation",
-    "simulate": "jaxmpm.simulation",
+    "Simulation": "jaxmpm.running.simulation",
+    "simulate": "jaxmpm.running.simulation",
 }
 
 
 def __getattr__(name):
-    """A public name (`_PUBLIC`) or a submodule (jaxmpm.parameters, ...), imported on first use."""
+    """A public name (`_PUBLIC`) or a submodule (jaxmpm.scene.parameters, ...), imported on first use."""
     if name in _PUBLIC:
         value = getattr(importlib.import_module(_PUBLIC[name]), name)
     else:

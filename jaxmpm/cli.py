@@ -135,7 +135,7 @@ def run_command(arguments):
     output = output_path(arguments.output, arguments.scene)
     sim = checked_simulation(arguments)
     if not arguments.resume:
-        from jaxmpm.output import resumable_steps
+        from jaxmpm.running.output import resumable_steps
 
         done = resumable_steps(output)
         if done:
@@ -175,7 +175,7 @@ def second_signal_ends_at_once(output):
         while data := os.read(read, 64):
             seen += sum(byte in (signal.SIGINT, signal.SIGTERM) for byte in data)
             if seen >= 2:
-                from jaxmpm.output import abandon_open_runs
+                from jaxmpm.running.output import abandon_open_runs
 
                 abandon_open_runs()
                 os.write(2, f"jaxmpm: interrupted at once; partial output written to {output} "
@@ -220,7 +220,7 @@ def check_command(arguments):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from jaxmpm.budget import estimate_bytes
+    from jaxmpm.running.budget import estimate_bytes
 
     sim = checked_simulation(arguments)
     print_notes(sim.scene)
@@ -230,7 +230,7 @@ def check_command(arguments):
           f"{describe_reverse_mode(*sim.reverse_mode_memory(), sim.steps)}: ok", flush=True)
     if not arguments.quick:
         import jaxmpm
-        from jaxmpm.run_time import estimate_run_time
+        from jaxmpm.running.run_time import estimate_run_time
 
         jaxmpm.use_compilation_cache()          # the program compiled here is the one `run` loads
         print("compiling and timing a few steps for the run-time estimate (--quick skips it)", file=sys.stderr)
@@ -271,7 +271,7 @@ def read_result(path):
     """The Result in `path`, or one SceneError line if it is not a jaxmpm output file."""
     import h5py
 
-    from jaxmpm.results import Result
+    from jaxmpm.running.results import Result
 
     if not Path(path).is_file():
         raise SceneError(f"{path!r} does not exist.")
@@ -299,7 +299,7 @@ def plot_command(arguments):
     import matplotlib
 
     matplotlib.use("Agg")
-    from jaxmpm import plotting
+    from jaxmpm.pictures import plotting
 
     output = output_path(arguments.output, arguments.result, ".png")
     if Path(arguments.result).is_file():
@@ -335,7 +335,7 @@ RUN_PLOT_OPTIONS = ("field", "snapshot", "probes", "mirror")
 
 def plot_other_kind(kind, arguments, output):
     """`jaxmpm plot` of a file another package drew (`plugged_file_kind`): one PNG."""
-    from jaxmpm import plotting
+    from jaxmpm.pictures import plotting
 
     plotting.check_output(output, (".png",))
     for option in RUN_PLOT_OPTIONS:
@@ -348,7 +348,7 @@ def plot_other_kind(kind, arguments, output):
 
 
 def export_command(arguments):
-    from jaxmpm.export import export_paraview
+    from jaxmpm.pictures.export import export_paraview
 
     result = read_result(arguments.result)
     output = output_path(arguments.output, arguments.result, ".pvd")

@@ -293,7 +293,7 @@ def test_rollouts_run_together_share_the_reverse_mode_memory_budget(tmp_path):
     # jaxmpm calibrate runs the experiments of one scene file and every start under one vmap,
     # and each rollout keeps its own states for reverse mode: the budget is divided among them.
     from inverse.config import load_calibration
-    from jaxmpm.rollout import STORE_BUDGET_BYTES
+    from jaxmpm.running.rollout import STORE_BUDGET_BYTES
 
     experiment = f'scene = "{EXAMPLES / "calibrate_twin_scene.toml"}"\nobservations = "{EXAMPLES / "calibrate_twin_observations.csv"}"\n'
     fit = '[fit]\n"sand.friction_angle" = { low = 15.0, high = 40.0, start = 30.0 }\n'

@@ -1,4 +1,4 @@
-"""The `jaxmpm run` command and the HDF5 output schema of jaxmpm.results."""
+"""The `jaxmpm run` command and the HDF5 output schema of jaxmpm.running.results."""
 
 import subprocess
 import sys
@@ -121,7 +121,7 @@ def test_a_second_run_loads_every_program_from_the_compilation_cache(block_file,
 
 
 def test_the_compilation_cache_directory_follows_the_environment(tmp_path):
-    from jaxmpm.compilation_cache import cache_directory
+    from jaxmpm.running.compilation_cache import cache_directory
 
     assert cache_directory({"JAXMPM_CACHE_DIR": "off", "HOME": str(tmp_path)}) is None
     assert cache_directory({"JAXMPM_CACHE_DIR": str(tmp_path / "c")}) == tmp_path / "c"
@@ -132,7 +132,7 @@ def test_the_compilation_cache_directory_follows_the_environment(tmp_path):
 def test_the_library_imports_nothing_of_inverse_and_the_command_still_calibrates():
     # inverse adds `calibrate` to the command through the entry point group jaxmpm.commands:
     # importing jaxmpm (and its command) loads no module of inverse, and the parser offers it.
-    code = ("import sys, jaxmpm, jaxmpm.cli, jaxmpm.scene, jaxmpm.plotting, jaxmpm.export; "
+    code = ("import sys, jaxmpm, jaxmpm.cli, jaxmpm.scene, jaxmpm.pictures.plotting, jaxmpm.pictures.export; "
             "assert not [m for m in sys.modules if m == 'inverse' or m.startswith('inverse.')], 'inverse imported'; "
             "parser = jaxmpm.cli.build_parser(); print(parser.parse_args(['calibrate', 'x.toml']).config)")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)

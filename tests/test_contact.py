@@ -20,8 +20,8 @@ import tomli_w
 
 import jaxmpm
 from jaxmpm.cli import main
-from jaxmpm.contact import Interface, contact_normals, contact_velocity_change, resolve_interfaces
-from jaxmpm.simulation import velocity_fields
+from jaxmpm.physics.contact import Interface, contact_normals, contact_velocity_change, resolve_interfaces
+from jaxmpm.running.simulation import velocity_fields
 from tests.scenes import reverse_mode_against_central_differences
 from jaxmpm import (
     Body, Boundaries, Contact, DruckerPrager, Geostatic, Grid, Kinematics, LinearElastic, Numerics, Polygon, Probe,

@@ -165,14 +165,14 @@ def test_no_sand_point_ends_inside_a_punch(monkeypatch):
     # examples/pile_driving.toml held 16). bodies.keep_points_outside puts them back on the
     # punch's outline: none is inside after 2.5 cells of penetration. Without it, some are.
     assert points_inside_punch(Simulation(punch())) == 0
-    import jaxmpm.bodies
+    import jaxmpm.physics.bodies
 
-    monkeypatch.setattr(jaxmpm.bodies, "outline_pairs", lambda structure: ())
+    monkeypatch.setattr(jaxmpm.physics.bodies, "outline_pairs", lambda structure: ())
     assert points_inside_punch(Simulation(punch())) > 0
 
 
 def test_outlines_are_convex_and_counter_clockwise():
-    from jaxmpm.bodies import convex_outline
+    from jaxmpm.physics.bodies import convex_outline
 
     square = ((0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0))
     assert convex_outline(square) == square

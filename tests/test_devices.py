@@ -17,7 +17,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import numpy as np
 import jaxmpm
-from jaxmpm.ensembles import stack
+from jaxmpm.running.ensembles import stack
 from tests.scenes import BLOCK
 
 sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK))

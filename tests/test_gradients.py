@@ -100,10 +100,10 @@ def test_vmap_over_parameters_matches_single_runs():
 
 
 def test_programs_are_traced_with_the_garbage_collector_paused():
-    # jaxmpm.tracing: Python's cyclic collector is paused while jaxmpm traces its programs
+    # jaxmpm.running.tracing: Python's cyclic collector is paused while jaxmpm traces its programs
     # (a fifth of a gradient's tracing and lowering went to its collections), and left as it
     # was after, also when the call fails.
-    from jaxmpm.tracing import collector_paused
+    from jaxmpm.running.tracing import collector_paused
 
     sim = small_simulation()
     collecting = []
@@ -169,8 +169,8 @@ def test_recomputed_steps_keep_the_perzyna_roots_instead_of_solving_again():
         results[step] = jax.jit(program)(sim.params)
     assert np.all(np.asarray(sim.final_state().particles.history[0]["plastic_strain"]) > 0.0)
     # "auto"'s budget counts the kept roots (one value a point and step) with the states
-    from jaxmpm.rollout import state_bytes
-    from jaxmpm.solver import kept_grid_bytes, kept_solve_bytes
+    from jaxmpm.running.rollout import state_bytes
+    from jaxmpm.physics.solver import kept_grid_bytes, kept_solve_bytes
 
     initial = sim.initial_state()
     itemsize = initial.particles.x.dtype.itemsize
@@ -188,7 +188,7 @@ def test_recomputed_steps_keep_the_perzyna_roots_instead_of_solving_again():
 
 
 def test_auto_checkpointing_keeps_states_and_node_arrays_only_within_its_memory_budget():
-    from jaxmpm.rollout import STORE_BUDGET_BYTES as budget
+    from jaxmpm.running.rollout import STORE_BUDGET_BYTES as budget
 
     auto, grid = jaxmpm.Checkpointing(), "recompute_grid"
     # 200 steps whose states and node arrays fill the budget exactly: one segment, each step run
@@ -209,8 +209,8 @@ def test_auto_checkpointing_keeps_states_and_node_arrays_only_within_its_memory_
 
 
 def test_the_default_budget_is_two_gib_or_an_eighth_of_a_smaller_machine():
-    from jaxmpm.rollout import STORE_BUDGET_BYTES, default_budget
-    from jaxmpm.budget import physical_bytes
+    from jaxmpm.running.rollout import STORE_BUDGET_BYTES, default_budget
+    from jaxmpm.running.budget import physical_bytes
 
     gib = 1024**3
     assert default_budget(24 * gib) == 2 * gib            # the development VM
@@ -228,8 +228,8 @@ def test_a_rollout_in_one_segment_keeps_its_states_and_node_arrays_and_nothing_m
     # each step again. The gradient's XLA temporaries are then those (steps x (state + node
     # array bytes), the memory the budget rule counts), not the steps' intermediates (~5x
     # more), and not a few segment states.
-    from jaxmpm.rollout import state_bytes
-    from jaxmpm.solver import kept_grid_bytes
+    from jaxmpm.running.rollout import state_bytes
+    from jaxmpm.physics.solver import kept_grid_bytes
 
     sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK.replace("duration = 0.01", "duration = 0.1")))   # 140 steps
     initial = sim.initial_state()
@@ -256,8 +256,8 @@ def test_reverse_mode_memory_counts_what_each_checkpointing_keeps():
     # Simulation.reverse_mode_memory: one segment keeps every step's state (and, with
     # "recompute_grid", its node arrays); segments keep one state a segment and that for the
     # steps of one segment. The gradient's XLA temporaries hold that and the step's own.
-    from jaxmpm.rollout import state_bytes
-    from jaxmpm.solver import kept_grid_bytes
+    from jaxmpm.running.rollout import state_bytes
+    from jaxmpm.physics.solver import kept_grid_bytes
 
     sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(BLOCK.replace("duration = 0.01", "duration = 0.1")))   # 140 steps
     initial = sim.initial_state()
@@ -280,7 +280,7 @@ def test_recompute_grid_keeps_the_velocity_gradients_of_3x3_stencils_and_counts_
     # four in-plane velocity-gradient entries (KEPT_RATE) on top of the node arrays; with 2 x 2
     # stencils it does not. The XLA temporaries beyond those of the same rollout keeping only
     # the node arrays are what the budget rule counts for them (kept_grid_bytes).
-    from jaxmpm.solver import kept_grid_bytes
+    from jaxmpm.physics.solver import kept_grid_bytes
 
     scene = jaxmpm.Scene.from_toml(BLOCK.replace("duration = 0.01", "duration = 0.1").replace('shape = "linear"', f'shape = "{shape}"'))
     temp = {}

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 import jaxmpm
-from jaxmpm.output import resumable_steps
-from jaxmpm.runner import chunk_length, interval_calls
+from jaxmpm.running.output import resumable_steps
+from jaxmpm.running.runner import chunk_length, interval_calls
 from tests.scenes import BLOCK
 
 # One output interval of 270,000 steps (about 8 s here): before runs were chunked, a signal
@@ -141,7 +141,7 @@ def test_a_second_signal_stops_at_once_inside_a_long_compiled_call(tmp_path):
     scene_path.write_text(BLOCK.replace("duration = 0.01", "duration = 200.0")
                           .replace("output_every = 0.005", "output_every = 100.0"))
     output = tmp_path / "two_calls.h5"
-    driver = ("import sys, jaxmpm.runner; jaxmpm.runner.CHUNK_POINT_STEPS = 1e12; "
+    driver = ("import sys, jaxmpm.running.runner; jaxmpm.running.runner.CHUNK_POINT_STEPS = 1e12; "
               "from jaxmpm.cli import main; sys.exit(main(sys.argv[1:]))")
     process = subprocess.Popen([sys.executable, "-c", driver, "run", str(scene_path), "-o", str(output), "--quiet"],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

@@ -6,11 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmpm.grid import GridLayout, add_to_nodes
+from jaxmpm.physics.grid import GridLayout, add_to_nodes
 from jaxmpm.kernels.fusion import materialized
 from jaxmpm.kernels.scatter import batched_add_to_nodes
 from jaxmpm.scene import Scene
-from jaxmpm.simulation import Simulation
+from jaxmpm.running.simulation import Simulation
 from tests.scenes import BLOCK, jaxpr_equations
 
 LAYOUT = GridLayout((0.0, 0.0), 0.1, (10, 8), "bspline2", 2)

@@ -133,6 +133,6 @@ def test_a_streamed_run_holds_no_snapshot_in_memory_and_equals_the_in_memory_run
     extra = 40 * snapshot_bytes          # what 40 more snapshots hold
     assert peaks["memory", 60] - peaks["memory", 20] > 0.8 * extra          # the measure sees them
     assert peaks["file", 60] - peaks["file", 20] < 0.1 * extra              # the streamed run holds none
-    assert isinstance(result.snapshots, jaxmpm.results.FileSnapshots)
+    assert isinstance(result.snapshots, jaxmpm.running.results.FileSnapshots)
 
 

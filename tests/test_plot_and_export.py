@@ -18,9 +18,10 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import jaxmpm  # noqa: E402
-from jaxmpm import plotting, tensors  # noqa: E402
+from jaxmpm import tensors  # noqa: E402
+from jaxmpm.pictures import plotting  # noqa: E402
 from jaxmpm.cli import main  # noqa: E402
-from jaxmpm.snapshots import Snapshots  # noqa: E402
+from jaxmpm.pictures.snapshots import Snapshots  # noqa: E402
 from tests.scenes import BLOCK  # noqa: E402
 
 # Two bodies of one material: a slab and a cap resting on it (lattice centres never sit on

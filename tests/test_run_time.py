@@ -7,8 +7,8 @@ import pytest
 
 import jaxmpm
 from jaxmpm.cli import main
-from jaxmpm.progress import progress_bar, restart_clock
-from jaxmpm.run_time import estimate_run_time, readable_seconds
+from jaxmpm.running.progress import progress_bar, restart_clock
+from jaxmpm.running.run_time import estimate_run_time, readable_seconds
 from tests.scenes import BLOCK
 
 

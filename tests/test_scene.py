@@ -256,7 +256,7 @@ def test_a_body_and_its_material_may_share_a_name_in_set():
     assert tuple(next(body for body in moving.bodies if body.name == "sand").velocity) == (0.0, -1.0)
     with pytest.raises(SceneError, match="'colour' is not a key of the material 'sand' or body 'sand'"):
         scene.with_value("sand.colour", 1.0)
-    params = jaxmpm.parameters.scene_parameters(scene)
+    params = jaxmpm.scene.parameters.scene_parameters(scene)
     assert float(jaxmpm.with_values(params, {"sand.friction_angle": 31.0})["materials"]["sand"]["friction_angle"]) == 31.0
 
 

@@ -8,7 +8,7 @@ import pytest
 
 import inverse
 import jaxmpm
-from jaxmpm.parameters import resolve, value_at
+from jaxmpm.scene.parameters import resolve, value_at
 from tests.scenes import BLOCK
 
 FALL = BLOCK.replace('bottom = "fixed"', 'bottom = "free"').replace("size = [0.4, 0.3]", "size = [0.4, 0.6]").replace(

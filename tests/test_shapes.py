@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 import jaxmpm
-from jaxmpm.grid import GridLayout
-from jaxmpm.shapes import QuadraticBSpline, UniformGIMP
+from jaxmpm.physics.grid import GridLayout
+from jaxmpm.physics.shapes import QuadraticBSpline, UniformGIMP
 from tests.test_elastic_validation import (
     BAR_LENGTH,
     BAR_OMEGA,

@@ -40,7 +40,7 @@ from jaxmpm import tensors
 from jaxmpm.errors import SceneError
 from jaxmpm.keys import Key, is_concrete
 from jaxmpm.materials.base import ELASTIC_KEYS, Law, Material, check_keys
-from jaxmpm.rollout import KEPT_SOLVES
+from jaxmpm.kernels.checkpoint_names import KEPT_SOLVES
 from jaxmpm.materials.linear_elastic import elastic_moduli, elastic_trial_voigt, p_wave_speed
 
 CONES = {
@@ -66,7 +66,7 @@ def perzyna_fraction(trial_overstress, hardening, pressure_trial, dilation_rate,
     m the cone slope; rate = gamma dt; exponent N. Value from bracketed Newton steps on
     t = logit(x) (`perzyna_root_of`), derivatives from the implicit function theorem
     (`fraction_at_root`). The root is named KEPT_SOLVES: a checkpointed step keeps it, and
-    its recomputation in reverse mode does not solve again (`jaxmpm.rollout`).
+    its recomputation in reverse mode does not solve again (`jaxmpm.running.rollout`).
     """
     arguments = (trial_overstress, hardening, pressure_trial, dilation_rate, m, rate, exponent)
     root = checkpoint_name(perzyna_root_of(*arguments), KEPT_SOLVES)

@@ -13,7 +13,7 @@ from jaxmpm.errors import SceneError
 from jaxmpm.keys import check_range, check_value
 from jaxmpm.scene.parts import KINEMATICS, NAME, Grid, Kinematics, Rectangle
 from jaxmpm.scene.schema import SCENE_FILE
-from jaxmpm.time_step import check_scene_step
+from jaxmpm.physics.time_step import check_scene_step
 
 
 def check_fields(obj, section, path, variant=None):

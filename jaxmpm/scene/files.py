@@ -16,7 +16,7 @@ import tomli_w
 from jaxmpm.errors import SceneError
 from jaxmpm.keys import read_section
 from jaxmpm.materials import MODELS
-from jaxmpm.parameters import qualify
+from jaxmpm.scene.parameters import qualify
 from jaxmpm.scene.parts import Body, Boundaries, Contact, Geostatic, Grid, Kinematics, Numerics, Polygon, Probe, Rectangle
 from jaxmpm.scene.schema import MATERIAL, SCENE_FILE
 

@@ -15,7 +15,7 @@ from typing import Any
 from jaxmpm.scene.checks import check_scene
 from jaxmpm.scene.files import dict_with_value, read_scene_file, scene_arguments, scene_to_dict, toml_text, toml_values
 from jaxmpm.scene.parts import DEFAULT_CFL, Body, Contact, Grid, Numerics, Probe
-from jaxmpm.time_step import body_speed, stable_limit
+from jaxmpm.physics.time_step import body_speed, stable_limit
 
 @dataclasses.dataclass(frozen=True)
 class Scene:
@@ -82,7 +82,7 @@ class Scene:
     @property
     def stable_dt(self) -> float:
         """The stability limit h / max(c_p + |v|) [s]; the scene runs at cfl times this
-        (`jaxmpm.time_step`)."""
+        (`jaxmpm.physics.time_step`)."""
         return stable_limit(self)
 
     @property

@@ -19,7 +19,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxmpm.errors import SceneError
-from jaxmpm.tracing import collector_paused
+from jaxmpm.running.tracing import collector_paused
 from jaxmpm.kernels.xla_options import jit_with_options
 
 
@@ -31,7 +31,7 @@ def stack(param_sets) -> dict:
 def batch_size(batch) -> int:
     sizes = {np.shape(leaf)[0] if np.ndim(leaf) else None for leaf in jax.tree_util.tree_leaves(batch)}
     if len(sizes) != 1 or None in sizes:
-        raise SceneError("params_batch: every value needs the same leading batch axis (see jaxmpm.ensembles.stack).")
+        raise SceneError("params_batch: every value needs the same leading batch axis (see jaxmpm.running.ensembles.stack).")
     return sizes.pop()
 
 

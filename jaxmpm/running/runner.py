@@ -2,10 +2,10 @@
 
 `run_forward` advances the compiled chunks of steps (`chunk_length`: well under a second each;
 whole chunks and a remainder make up an output interval), shows the progress, streams the
-probe rows and snapshots to the run's file (`jaxmpm.output.RunFile`), resumes an interrupted run from it, acts on Ctrl-C and
+probe rows and snapshots to the run's file (`jaxmpm.running.output.RunFile`), resumes an interrupted run from it, acts on Ctrl-C and
 SIGTERM between chunks (`output.deferred_interrupts`), and says in one sentence why a run
 stopped early (`describe_failure`). The differentiable description of the scene, its step and
-its probes, is `jaxmpm.simulation.Simulation`, which this module only drives.
+its probes, is `jaxmpm.running.simulation.Simulation`, which this module only drives.
 """
 
 from __future__ import annotations
@@ -13,13 +13,13 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmpm import state as state_bits
+from jaxmpm.physics import state as state_bits
 from jaxmpm.errors import SceneError, SimulationError
-from jaxmpm.output import RunFile, deferred_interrupts, uninterrupted
-from jaxmpm.progress import progress_bar, restart_clock
-from jaxmpm.results import FileSnapshots, Result
-from jaxmpm.state import counters_at_start
-from jaxmpm.tracing import collector_paused
+from jaxmpm.running.output import RunFile, deferred_interrupts, uninterrupted
+from jaxmpm.running.progress import progress_bar, restart_clock
+from jaxmpm.running.results import FileSnapshots, Result
+from jaxmpm.physics.state import counters_at_start
+from jaxmpm.running.tracing import collector_paused
 
 CHUNK_POINT_STEPS = 1e6   # point-steps per compiled call of a run: 0.1-0.5 s on a 2-core CPU (1-8 M/s)
 

@@ -63,7 +63,7 @@ class Snapshots:
     @functools.cached_property
     def seeded_positions(self):
         """(N, 2) initial point positions, seeded again from the scene (done once)."""
-        from jaxmpm.seeding import seed_bodies
+        from jaxmpm.scene.seeding import seed_bodies
 
         return seed_bodies(self.scene).positions
 

@@ -44,7 +44,7 @@ per unit time, and so the result, no longer depends on dt.
 `make_step(structure)` closes over the static structure and returns a pure
 `step(params, state) -> (state, diagnostics)`; every physical value comes from `params`
 (namespaced: params["materials"], params["contacts"], params["bodies"], params["scene"]
-(gravity), params["numerics"] (damping); `jaxmpm.parameters`), the structure decides only which
+(gravity), params["numerics"] (damping); `jaxmpm.scene.parameters`), the structure decides only which
 code exists; the diagnostics are what probes read beyond the points (contact forces, reactions).
 """
 
@@ -57,14 +57,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
-from jaxmpm.bodies import Grid, impose_body_motions, keep_points_outside, move_kinematic_bodies
-from jaxmpm.contact import Interface, resolve_interfaces
-from jaxmpm.grid import (
+from jaxmpm.physics.bodies import Grid, impose_body_motions, keep_points_outside, move_kinematic_bodies
+from jaxmpm.physics.contact import Interface, resolve_interfaces
+from jaxmpm.physics.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
 )
 from jaxmpm.materials.base import points_update_voigt
-from jaxmpm.rollout import KEPT_GRID, KEPT_RATE
-from jaxmpm.state import Diagnostics, record_errors
+from jaxmpm.kernels.checkpoint_names import KEPT_GRID, KEPT_RATE
+from jaxmpm.physics.state import Diagnostics, record_errors
 from jaxmpm.tensors import components, entries, from_entries, stack_last
 
 MASS_FLOOR = 1e-10   # nodes lighter than this fraction of the heaviest point count as empty

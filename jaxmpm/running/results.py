@@ -8,7 +8,7 @@ components are ordered (x, y, z), so stress[..., 2, 2] is sigma_zz; in axisymmet
 theta), so it is the hoop stress. `geometry` and `extent` repeat what the scene says, for
 other readers; `load` reads files written before they existed. `save` writes to a temporary
 name and renames, so a reader never sees half a file; a run with `save_to` streams the same
-layout output by output (jaxmpm/output.py), plus `steps_done` and a `/resume` group.
+layout output by output (jaxmpm/running/output.py), plus `steps_done` and a `/resume` group.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import h5py
 import numpy as np
 
 from jaxmpm.files import atomic_path
-from jaxmpm.output import EXTENTS
+from jaxmpm.running.output import EXTENTS
 
 
 class FileSnapshots(Mapping):
@@ -119,24 +119,24 @@ class Result:
 
     def plot(self, field=None, snapshot=-1, mirror=False, ax=None):
         """A matplotlib figure of one snapshot, points coloured by `field` (default q); see
-        `jaxmpm.plotting` (in Jupyter the returned figure shows itself). `mirror=True`
+        `jaxmpm.pictures.plotting` (in Jupyter the returned figure shows itself). `mirror=True`
         (axisymmetric runs) also draws the mirror image about the axis. `ax`: draw into these
         matplotlib axes (one panel of a larger figure)."""
-        from jaxmpm.plotting import snapshot_figure
+        from jaxmpm.pictures.plotting import snapshot_figure
 
         return snapshot_figure(self, field, snapshot, mirror, ax)
 
     def plot_probes(self):
         """A matplotlib figure of every probe history against time."""
-        from jaxmpm.plotting import probes_figure
+        from jaxmpm.pictures.plotting import probes_figure
 
         return probes_figure(self)
 
     def export(self, path, revolve=None) -> Path:
         """ParaView files: `path` (.pvd) and a folder of one VTU file per snapshot.
         `revolve=N` (axisymmetric runs) writes every point at N angles about the axis, a 3-D
-        point cloud (see `jaxmpm.export`)."""
-        from jaxmpm.export import export_paraview
+        point cloud (see `jaxmpm.pictures.export`)."""
+        from jaxmpm.pictures.export import export_paraview
 
         return export_paraview(self, path, revolve)
 

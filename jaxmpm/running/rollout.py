@@ -11,7 +11,8 @@ import numbers
 import jax
 import jax.numpy as jnp
 
-from jaxmpm.budget import physical_bytes
+from jaxmpm.running.budget import physical_bytes
+from jaxmpm.kernels.checkpoint_names import KEPT_GRID, KEPT_RATE, KEPT_SOLVES
 
 
 def default_budget(physical: float) -> int:
@@ -30,18 +31,6 @@ RECOMPUTED_PRIMITIVES = frozenset({
     "add", "add_any", "sub", "mul", "neg", "div", "max", "min", "select_n", "convert_element_type",
     "broadcast_in_dim", "reshape", "squeeze", "expand_dims", "concatenate", "slice", "pad", "transpose", "copy",
 })
-
-# The name of the node arrays "recompute_grid" keeps (`jax.ad_checkpoint.checkpoint_name`): what
-# the step's particle-to-grid transfers produce (`solver.particles_to_grid`, `remap_velocity`).
-KEPT_GRID = "grid"
-# The name of the points' velocity gradients "recompute_grid" keeps with 3 x 3 stencils
-# (`solver.velocity_gradient`): recomputed, XLA formed them twice, once per layout its readers
-# asked for, each time from the 9 gathered node velocities of a point.
-KEPT_RATE = "rate"
-# The name of the roots of implicit equations a material law solves at each point (the Perzyna
-# solve: `materials.drucker_prager.perzyna_fraction`). "recompute" and "recompute_grid" keep
-# them, so the step they run again solves nothing.
-KEPT_SOLVES = "solve"
 
 
 def arithmetic_recomputed(primitive, *_, **__):

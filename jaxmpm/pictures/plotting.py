@@ -6,7 +6,7 @@ probe histories.
     jaxmpm plot OUT.h5 --probes -o probes.png   # probe histories against time
     jaxmpm plot OUT.h5 --mirror                 # axisymmetric run: the whole diametral section
 
-Field names are those of `jaxmpm.snapshots` (stored fields and p, q, sigma_xx, ... or, in
+Field names are those of `jaxmpm.pictures.snapshots` (stored fields and p, q, sigma_xx, ... or, in
 axisymmetry, sigma_rr, ..., speed). Points are drawn as squares of their initial spacing
 (h / ppc), so a body looks solid. In axisymmetry the axes are r and z, mass and volume are
 per radian, and force probes are the whole ring's (N); `mirror` also draws the section's
@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxmpm.errors import SceneError
 from jaxmpm.files import atomic_path
-from jaxmpm.snapshots import STRESS_NAMES, Snapshots
+from jaxmpm.pictures.snapshots import STRESS_NAMES, Snapshots
 
 FORMATS = (".png", ".gif", ".mp4")
 PREFERRED_FIELDS = ("q", "plastic_strain", "displacement", "body")

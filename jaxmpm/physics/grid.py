@@ -19,7 +19,7 @@ from jaxmpm.kernels.scatter import batched_add_to_nodes
 from jaxmpm.kernels.transposes import (
     gather_with_scatter_transpose, scatter_with_gather_transpose, sum_with_broadcast_transpose,
 )
-from jaxmpm.shapes import make_shape, stencil
+from jaxmpm.physics.shapes import make_shape, stencil
 from jaxmpm.tensors import stack_last
 
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from jaxmpm.errors import SceneError
 from jaxmpm.files import atomic_path
-from jaxmpm.snapshots import Snapshots
+from jaxmpm.pictures.snapshots import Snapshots
 
 
 def turns(count):

@@ -3,7 +3,7 @@
     sim = Simulation(scene)
     sim.params                      # {"materials": {"sand": {"density": 1800.0, ...}}, "contacts": ...}
     sim.probes(params)              # {name: (T, k)}, differentiable w.r.t. every parameter
-    sim.run()                       # a forward run with progress, file and resume (`jaxmpm.runner`)
+    sim.run()                       # a forward run with progress, file and resume (`jaxmpm.running.runner`)
 
 The structure (grid, shape function, which materials, step count, time step) is fixed when the
 Simulation is built and compiled once; parameters are traced values, so `jax.grad`, `jax.jvp`
@@ -23,28 +23,28 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from jaxmpm.bodies import convex_outline
-from jaxmpm.budget import check_memory
+from jaxmpm.physics.bodies import convex_outline
+from jaxmpm.running.budget import check_memory
 from jaxmpm.errors import SceneError
-from jaxmpm.grid import GridLayout
-from jaxmpm.initial_stress import depth_below_top, geostatic_stress, jaky_k0
-from jaxmpm.contact import Interface
+from jaxmpm.physics.grid import GridLayout
+from jaxmpm.physics.initial_stress import depth_below_top, geostatic_stress, jaky_k0
+from jaxmpm.physics.contact import Interface
 from jaxmpm.kernels.xla_options import compiler_options, jit_with_options
 from jaxmpm.keys import is_concrete
 from jaxmpm.materials.base import material_parameters
-from jaxmpm.parameters import scene_parameters
-from jaxmpm.probes import make_probes
-from jaxmpm.runner import chunk_length, run_forward
-from jaxmpm.results import Result
-from jaxmpm.rollout import Checkpointing, checkpointed_rollout, scan_steps, state_bytes
+from jaxmpm.scene.parameters import scene_parameters
+from jaxmpm.physics.probes import make_probes
+from jaxmpm.running.runner import chunk_length, run_forward
+from jaxmpm.running.results import Result
+from jaxmpm.running.rollout import Checkpointing, checkpointed_rollout, scan_steps, state_bytes
 from jaxmpm.scene import Scene
-from jaxmpm.seeding import padded, seed_bodies
-from jaxmpm.solver import (
+from jaxmpm.scene.seeding import padded, seed_bodies
+from jaxmpm.physics.solver import (
     BodyBlock, Structure, body_memory, kept_grid_bytes, kept_solve_bytes, make_step, transfer_memory,
 )
-from jaxmpm.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
-from jaxmpm.time_step import exceeds, material_limits, time_stepping
-from jaxmpm.tracing import collector_paused
+from jaxmpm.physics.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
+from jaxmpm.physics.time_step import exceeds, material_limits, time_stepping
+from jaxmpm.running.tracing import collector_paused
 
 
 def check_dtype(scene: Scene):

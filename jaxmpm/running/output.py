@@ -1,6 +1,6 @@
 """A forward run's HDF5 file, written output by output as the run goes, and resumed from.
 
-The layout is `Result.save`'s (jaxmpm/results.py) with resizable datasets: after every chunk
+The layout is `Result.save`'s (jaxmpm/running/results.py) with resizable datasets: after every chunk
 of steps (`Simulation.chunk`, well under a second of work) its probe rows are appended, after
 every output interval the new snapshot, and the file is flushed each time, so it is valid and
 readable while the run goes (`complete = false` until the end) and memory does not grow with

@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmpm.contact import interface_impulse, interface_normals
+from jaxmpm.physics.contact import interface_impulse, interface_normals
 
 NEWTON_ITERATIONS = 3   # 2-3 reach round-off (the same wall motion as 8, bit for bit or within
                         # 1e-12) on retaining_wall, the wall twin and the small wall of docs/convergence.md

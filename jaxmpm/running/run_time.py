@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxmpm.output import RunFile
-from jaxmpm.runner import snapshot_fields
-from jaxmpm.state import counters_at_start
-from jaxmpm.tracing import collector_paused
+from jaxmpm.running.output import RunFile
+from jaxmpm.running.runner import snapshot_fields
+from jaxmpm.physics.state import counters_at_start
+from jaxmpm.running.tracing import collector_paused
 
 TIMED_SECONDS = 1.0      # wall time of the timed chunks (at least one chunk is timed)
 
