@@ -52,7 +52,7 @@ from pathlib import Path
 from jaxmpm.errors import SceneError
 from jaxmpm.keys import Key, Section, convert, read_section
 from jaxmpm.scene import load_scene
-from inverse.calibrate import OPTIMIZERS
+from inverse.problem import OPTIMIZERS
 from inverse.observations import load_observations
 
 NOISE = Key("noise", "mapping", "noise standard deviation of each observed probe, in the probe's units: "

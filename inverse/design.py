@@ -39,7 +39,7 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from inverse.calibrate import over_starts
+from inverse.problem import over_starts
 from inverse.experiments import (
     check_observations, experiments_from, group_experiments, layout_of, problem_arguments, problem_residuals,
 )

@@ -1,4 +1,5 @@
-"""The result of a calibration: fitted values, their uncertainty, history, plots, HDF5 file.
+"""The result of a calibration: fitted values, their uncertainty, history, plots, HDF5 file;
+`fit_from` makes it from the problem and the optimiser's run.
 
 Uncertainty is the Gauss-Newton (linearised least-squares) covariance at the optimum,
     C = s^2 (J^T J)^-1,  J = dr/dtheta  (residuals r weighted by 1 / sigma),
@@ -16,6 +17,11 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from inverse.experiments import experiment_bases
+from jaxmpm.errors import SimulationError
+from jaxmpm.running.runner import describe_failure
+from jaxmpm.running.tracing import collector_paused
 
 
 
@@ -250,3 +256,88 @@ class Fit:
 
         fields = load_fit(path)
         return cls(**{**fields, "experiments": [ExperimentFit(**run) for run in fields["experiments"]]})
+
+
+def fit_from(problem, run, state, start_values, warning="") -> Fit:
+    """The Fit of a calibration's `problem` (inverse/problem.py) after the optimiser's `run`
+    and `state` (inverse/optimise.py): each start's answer is the better of its last point and
+    the best finite point it passed through (the last one unless it went astray); the best
+    start's covariance and every experiment's best-fit probes. Levenberg–Marquardt's state
+    holds the residuals and Jacobian of its last point, and its history the loss of every
+    point it passed through, so nothing is simulated again for them (each costs a compilation
+    of the whole problem)."""
+    experiments, groups, space = problem.experiments, problem.groups, problem.space
+    programs, data, bases, optimizer = problem.programs, problem.data, problem.bases, problem.optimizer
+    dtype = problem.dtype
+    last_z, best_z = jnp.asarray(run.z, dtype), jnp.asarray(run.best_z, dtype)
+    if optimizer == "lm":
+        last_losses = 0.5 * np.sum(np.asarray(state.residuals) ** 2, axis=1) / problem.count
+        passed_losses = np.asarray(run.best_loss)
+    else:
+        with collector_paused():
+            last_losses = np.asarray(programs.losses(last_z, data, bases))
+            passed_losses = np.asarray(programs.losses(best_z, data, bases))
+    at_best = np.all(np.asarray(run.best_z) == np.asarray(run.z), axis=1)    # the same point: no rounding decides
+    take_last = np.isfinite(last_losses) & (at_best | ~(passed_losses < last_losses))
+    final_z = jnp.where(jnp.asarray(take_last)[:, None], last_z, best_z)
+    final_losses = np.where(take_last, last_losses, passed_losses)
+    if not np.any(np.isfinite(final_losses)):
+        raise SimulationError("every start of the calibration went non-finite; narrow the bounds or change the starts.")
+    best = int(np.nanargmin(np.where(np.isfinite(final_losses), final_losses, np.nan)))
+    values = np.asarray(space.to_physical(final_z[best]))
+    linearization = None
+    if optimizer == "lm" and take_last[best]:
+        linearization = physical_linearization(space, final_z[best], state.residuals[best], state.jacobian[best])
+    if linearization is None:             # another optimiser, a passed point, or a value pinned at a bound
+        with collector_paused():
+            linearization = programs.linearization(jnp.asarray(values, dtype), data, bases)
+    covariance, jacobian = gauss_newton(
+        programs.residuals, values, noise_known=all(e.observations.noise_known for e in experiments),
+        linearization=linearization,
+    )
+    runs, warnings_found = [], [warning] if warning else []
+    for index, (experiment, base) in enumerate(zip(experiments, experiment_bases(groups, bases, len(experiments)))):
+        sim = experiment.sim
+        params = space.insert(jnp.asarray(values, dtype), base, experiment=index)
+        probes, final_state = sim.probes_and_final_state(params)
+        if int(final_state.error_step) >= 0:
+            warnings_found.append(f"best-fit run of {experiment.name}: " + describe_failure(sim, final_state))
+        runs.append(ExperimentFit(experiment.name, experiment.observations, np.asarray(sim.time),
+                                  {name: np.asarray(v) for name, v in probes.items()}, dict(experiment.set)))
+    # + two losses of every start, the covariance's Jacobian and the best-fit probes, per experiment
+    evaluations = run.evaluations + (2 * len(start_values) + 2) * len(experiments)
+    return Fit(
+        names=space.names,
+        values=values,
+        loss=float(final_losses[best]),
+        covariance=covariance,
+        jacobian=jacobian,
+        start_values=np.asarray(start_values),
+        final_values=np.asarray(jax.vmap(space.to_physical)(final_z)),
+        final_losses=final_losses,
+        best_start=best,
+        reasons=list(run.reason),
+        history_loss=np.array(run.history_loss),
+        history_values=np.array(run.history_values),
+        history_gradient=np.array(run.history_gradient),
+        history_seconds=np.array(run.history_seconds),
+        history_memory=np.array(run.history_memory),
+        history_simulations=np.array(run.history_simulations),
+        iterations=run.iteration,
+        evaluations=evaluations,
+        wall_time=float("nan"),           # set by the caller, who holds the clock
+        optimizer=optimizer,
+        experiments=runs,
+        scene_toml=experiments[0].sim.scene.to_toml(),
+        warning="; ".join(warnings_found),
+    )
+
+
+def physical_linearization(space, z, residuals, jacobian):
+    """(r, dr/dtheta) from Levenberg–Marquardt's (r, dr/dz) at z: the bounds' transforms act
+    on each parameter alone, so dr/dtheta_k = (dr/dz_k) / (dtheta_k/dz_k); None where that
+    derivative vanishes (a value pinned at a bound), and the Jacobian is then taken afresh."""
+    slopes = np.diag(np.asarray(jax.jacfwd(space.to_physical)(z)))
+    if not np.all(np.isfinite(slopes) & (np.abs(slopes) > np.finfo(slopes.dtype).tiny)):   # no subnormal divisor
+        return None
+    return np.asarray(residuals), np.asarray(jacobian) / slopes[None, :]

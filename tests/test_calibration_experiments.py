@@ -20,7 +20,7 @@ import pytest
 import inverse
 import jaxmpm
 from inverse import levenberg_marquardt
-from inverse.calibrate import cells_crossed, linear_shape_warning
+from inverse.problem import cells_crossed, linear_shape_warning
 from inverse.fit import gauss_newton
 from inverse.experiments import (
     base_parameters, experiments_from, group_experiments, observation_data, problem_arguments, problem_residuals,

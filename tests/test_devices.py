@@ -42,7 +42,7 @@ for count in (4, 3):                      # even, and padded to a multiple of th
         "devices_holding": len(values.sharding.device_set),
         "shard_rows": sorted({shard.data.shape[0] for shard in values.addressable_shards}),
     }
-from inverse.calibrate import over_devices
+from inverse.optimise import over_devices
 report["holding_starts"] = len(over_devices(jax.numpy.zeros((2, 1))).sharding.device_set)
 
 # A calibration of one start and two experiments of the same scene (twins: noise-free

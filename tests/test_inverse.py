@@ -159,7 +159,7 @@ def test_a_single_start_runs_unbatched_and_follows_its_batched_path():
     # One start (the default) runs without vmap (a batch of one batches every gather and
     # scatter of the simulation: 11 % slower): its results must be those of vmap, and its
     # path the one it follows in a batch of copies of itself.
-    from inverse.calibrate import over_starts
+    from inverse.problem import over_starts
 
     seen = []
 
@@ -248,9 +248,8 @@ def test_interrupted_calibration_resumes_where_it_would_have_ended(tmp_path):
 def test_a_calibration_interrupted_in_its_first_iteration_resumes(tmp_path, monkeypatch):
     # Ctrl-C while the first iteration compiles must leave a checkpoint that resumes.
     import dataclasses
-    import sys
 
-    calibration = sys.modules["inverse.calibrate"]     # the module (inverse.calibrate is the function)
+    from inverse import problem as calibration
     sim = twin_simulation()
     observations = twin_observations()
     options = dict(starts=[WRONG], max_iterations=2, progress=False)
@@ -373,7 +372,7 @@ def test_covariance_from_the_levenberg_marquardt_state_equals_a_fresh_jacobian()
     # built from it (no further simulation), which must equal the one from dr/dtheta taken by
     # forward mode at the same point, for every kind of bound; a value pinned at a bound
     # (dtheta/dz = 0 in floating point) falls back to the fresh Jacobian.
-    from inverse.calibrate import physical_linearization
+    from inverse.fit import physical_linearization
     from inverse.levenberg_marquardt import residuals_and_jacobian
 
     params = {"materials": {"sand": {"a": 2.0, "b": 3.0, "c": -1.0, "d": 0.5}}}
