@@ -1,6 +1,8 @@
 """The figure of a calibration (`Fit.plot`, `jaxmpm plot FIT.h5`): the loss and every
 parameter over the iterations, the error ellipses of every pair of parameters from the
-Gauss-Newton covariance, and the fitted against the observed probes of every experiment.
+Gauss-Newton covariance, the fitted against the observed probes of every experiment, and each
+experiment's weighted residuals r_j = (y_fit(t_j) - y_j) / s_j (s: the noise sigma, or the
+channel's RMS when none is given, as in the loss).
 
 An ellipse is the region {d : d^T C2^-1 d <= k} about the fitted values, C2 the pair's block
 of the covariance: k = 1 is the 1-sigma ellipse (its shadow on each axis is +- one standard
@@ -16,6 +18,7 @@ import math
 import numpy as np
 
 from inverse.experiments import window_mean, window_steps
+from inverse.observations import default_scale
 
 ELLIPSES = ((1.0, "1 σ"), (-2.0 * math.log(0.05), "95 %"))     # (k, label); chi2(2) quantile: -2 ln(1 - p)
 COLUMNS = 4
@@ -44,6 +47,7 @@ def fit_figure(fit):
                for run in fit.experiments if run.observations is not None
                for name, channel in run.observations.channels.items()
                for index, component in enumerate(channel.components)]
+    panels += [functools.partial(draw_residuals, fit, run) for run in fit.experiments if run.observations is not None]
     columns = min(COLUMNS, len(panels))
     rows = math.ceil(len(panels) / columns)
     figure, axes = plt.subplots(rows, columns, figsize=(3.9 * columns, 3.2 * rows), squeeze=False)
@@ -100,13 +104,45 @@ def draw_ellipses(fit, i, j, axis):
     axis.set_title(f"ρ = {correlation:.3f}" if np.isfinite(correlation) else "not identified", fontsize=9)
 
 
+def fitted_history(run, name, channel):
+    """(T, k) the best fit of probe `name` as the channel observes it: its mean over the
+    channel's averaging window, if any."""
+    simulated = run.probes[name]
+    if channel.window > 0 and len(run.time) > 1:
+        simulated = np.asarray(window_mean(simulated, window_steps(channel.window, run.time[1] - run.time[0])))
+    return simulated
+
+
+def fitted_at_observations(run, name, channel):
+    """(N, c) `fitted_history` interpolated to the observation times, at the observed components."""
+    simulated = fitted_history(run, name, channel)
+    return np.stack([np.interp(channel.times, run.time, simulated[:, k]) for k in channel.components], axis=1)
+
+
+def draw_residuals(fit, run, axis):
+    """The weighted residuals of every observed component of one experiment against time."""
+    known = all(channel.sigma is not None for channel in run.observations.channels.values())
+    for name, channel in run.observations.channels.items():
+        scale = channel.sigma if channel.sigma is not None else default_scale(channel)
+        residuals = (fitted_at_observations(run, name, channel) - channel.values) / scale
+        for index, component in enumerate(channel.components):
+            axis.plot(channel.times, residuals[:, index], ".", ms=3, label=f"{name}[{component}]")
+    axis.axhline(0.0, color="k", lw=0.8)
+    if known:
+        for bound in (-2.0, 2.0):
+            axis.axhline(bound, color="0.6", lw=0.8, ls="--")
+    several = len(fit.experiments) > 1
+    axis.set_title(("residuals / σ (±2 dashed)" if known else "residuals / channel RMS")
+                   + (f": {run.name}" if several else ""), fontsize=9)
+    axis.set_xlabel("t [s]")
+    axis.legend(fontsize=7)
+
+
 def draw_channel(fit, run, name, component, index, axis):
     """Observed values of one probe component against the best fit (its window mean when the
     observation averages over a window)."""
     channel = run.observations.channels[name]
-    simulated = run.probes[name]
-    if channel.window > 0 and len(run.time) > 1:      # what the observation measures
-        simulated = np.asarray(window_mean(simulated, window_steps(channel.window, run.time[1] - run.time[0])))
+    simulated = fitted_history(run, name, channel)
     axis.plot(channel.times, channel.values[:, index], ".", ms=3, color="0.4", label="observed")
     axis.plot(run.time, simulated[:, component], "-", color="C3",
               label=f"fit (mean over {channel.window:g} s)" if channel.window > 0 else "fit")

@@ -480,10 +480,14 @@ def test_a_fit_file_loads_back_to_the_fit_that_wrote_it_and_plots(tmp_path, caps
     assert verdicts["sand.exponent"].startswith("identified") and "correlated with sand.fluidity" in verdicts["sand.exponent"]
     assert fit.jacobian.shape == (sum(c.values.size for c in fit.observations.channels.values()), len(FIT))
 
-    # the command draws it: the loss and parameter histories, 3 error ellipses, 3 observed components
+    # the command draws it: the loss and parameter histories, 3 error ellipses, 3 observed
+    # components and the residuals, which are those of the loss: sum r^2 / (2 M) is the loss
     assert main(["plot", str(path)]) == 0
     assert (tmp_path / "fit.png").stat().st_size > 10_000
-    assert len(fit.plot().axes) >= 1 + 3 + 3 + 3
+    figure = fit.plot()
+    assert sum(axis.get_visible() for axis in figure.axes) == 1 + 3 + 3 + 3 + 1
+    drawn = np.concatenate([line.get_ydata() for line in figure.axes[10].get_lines() if len(line.get_ydata()) > 2])
+    assert 0.5 * np.sum(drawn**2) / drawn.size == pytest.approx(fit.loss, rel=1e-6)
     for options, words in ((["--field", "p"], "--field draws the output of a run"),
                            (["-o", str(tmp_path / "fit.gif")], "the file type must be .png")):
         assert main(["plot", str(path), *options]) == 2
