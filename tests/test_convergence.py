@@ -22,11 +22,11 @@ from tests.scenes import reverse_mode_against_central_differences
 G = 9.81
 
 
-def small_wall(kinematics="rigid", young=3.0e9, cfl=0.4, relaxation=10.0, duration=0.12):
+def small_wall(kinematics="rigid", young=3.0e9, cfl=0.4, relaxation=10.0, duration=0.12, substeps=None):
     """A wall (0.05 x 0.35 m, concrete density) on a 0.1 m sand foundation holding a 0.3 m
     rate-independent Drucker-Prager backfill, released at t = 0: it tilts forward about its
     toe (benchmarks/convergence_study.py's small wall, shortened), with the transfer's memory
-    the examples use (numerics.relaxation = 10)."""
+    the examples use (numerics.relaxation = 10); `substeps` for a free wall subcycled."""
     numerics = dict(shape="linear", transfer="apic", ppc=2, relaxation=relaxation)
     return Scene(
         name="small_wall",
@@ -38,7 +38,8 @@ def small_wall(kinematics="rigid", young=3.0e9, cfl=0.4, relaxation=10.0, durati
         bodies=(
             Body("sand", "sand", Polygon(((0.0, 0.0), (1.0, 0.0), (1.0, 0.4), (0.55, 0.4), (0.55, 0.1), (0.0, 0.1))),
                  initial_stress=Geostatic("jaky")),
-            Body("wall", "concrete", Rectangle((0.5, 0.1), (0.55, 0.45)), kinematics=Kinematics(kinematics)),
+            Body("wall", "concrete", Rectangle((0.5, 0.1), (0.55, 0.45)),
+                 kinematics=Kinematics(kinematics, substeps=substeps)),
         ),
         contacts=(Contact(("sand", "wall"), 0.4),),
         duration=duration,
@@ -78,7 +79,15 @@ def test_plain_apic_drifts_with_the_time_step():
     assert abs(coarse[-1] - fine[-1]) / abs(fine[-1]) > 0.10
 
 
-def test_a_stiff_elastic_wall_moves_like_the_rigid_one():
+@pytest.fixture(scope="module")
+def stiff_elastic_wall():
+    """(top (T,), dt) of the wall as a free body with E = 30 GPa at its own stable step (60 times
+    shorter than the sand's)."""
+    sim = Simulation(small_wall("free", young=30.0e9))
+    return np.asarray(sim.probes()["top"][:, 0])[:: sim.steps_per_output], sim.dt
+
+
+def test_a_stiff_elastic_wall_moves_like_the_rigid_one(stiff_elastic_wall):
     # E = 30 GPa is 6000 times the sand's modulus: the elastic wall's own strain is negligible,
     # so it must move as the rigid one does. Compared at the same dt (the elastic wall's p-wave
     # sets a step 60 times shorter), so that only the coupling differs. Measured
@@ -87,16 +96,51 @@ def test_a_stiff_elastic_wall_moves_like_the_rigid_one():
     # velocity that loses a thin body's rotation: 2.3 % behind at 0.1 s and 5.7 % at 0.2 s;
     # before the rigid body met the sand with the mean normal, the rigid wall moved 40 %
     # further; with plain APIC the elastic wall (60 times the steps) hardly moved at all.
-    elastic_sim = Simulation(small_wall("free", young=30.0e9))
-    elastic = np.asarray(elastic_sim.probes()["top"][:, 0])[:: elastic_sim.steps_per_output]
-    rigid = wall_top(dataclasses.replace(small_wall("rigid"), dt=elastic_sim.dt))
+    elastic, dt = stiff_elastic_wall
+    rigid = wall_top(dataclasses.replace(small_wall("rigid"), dt=dt))
     moving = np.abs(rigid) > 1e-3
     assert moving.sum() >= 3
     difference = np.abs(elastic - rigid)[moving] / np.abs(rigid)[moving]
     assert np.max(difference) < 0.02, difference
 
 
-BODY_KINDS = ("free", "prescribed", "rigid")
+def test_a_subcycled_stiff_wall_moves_as_the_same_wall_at_its_own_step(stiff_elastic_wall):
+    # The reference is the brute-force run: the 30 GPa wall as an ordinary free body, which
+    # sets a step 60 times shorter for the whole scene. Subcycled (physics/subcycling.py), the
+    # scene steps at the sand's cfl 0.4 and the wall takes 61 substeps in each. Measured over
+    # 0.2 s (docs/convergence.md): 0.7 % at 0.1 s, 1.8 % at 0.2 s; before its impulses were
+    # taken as a whole (as node forces on its substeps) it moved 14-34 % too far, more as dt shrank.
+    reference, _ = stiff_elastic_wall
+    sim = Simulation(small_wall("free", young=30.0e9, substeps="auto"))
+    wall = next(block for block in sim.structure.bodies if block.name == "wall")
+    assert wall.substeps > 20 and sim.dt > 20 * stiff_elastic_wall[1]
+    top = np.asarray(sim.probes()["top"][:, 0])[:: sim.steps_per_output]
+    moving = np.abs(reference) > 1e-3
+    assert moving.sum() >= 3
+    difference = np.abs(top - reference)[moving] / np.abs(reference)[moving]
+    assert np.max(difference) < 0.02, difference
+
+
+@pytest.mark.parametrize("change,words", [
+    (dict(kinematics=Kinematics("rigid", substeps=4)), "only free bodies"),
+    (dict(kinematics=Kinematics("free", substeps=0)), "substeps"),
+    (dict(kinematics=Kinematics("free", substeps="many")), "'auto'"),
+    (dict(kinematics=Kinematics("free", substeps=2)), "give at least"),
+])
+def test_a_subcycled_body_is_refused_with_one_sentence(change, words):
+    scene = small_wall("free", young=30.0e9)
+    wall = dataclasses.replace(scene.bodies[1], **change)
+    with pytest.raises(SceneError) as error:
+        Simulation(dataclasses.replace(scene, bodies=(scene.bodies[0], wall)))
+    message = str(error.value)
+    assert words in message and "substeps" in message and message.count(". ") == 0 and message.endswith("."), message
+
+
+BODY_KINDS = ("free", "prescribed", "rigid", "subcycled")
+
+
+KINEMATICS_OF = {"free": Kinematics("free"), "prescribed": Kinematics("prescribed", (0.0, -0.1)),
+                 "rigid": Kinematics("rigid"), "subcycled": Kinematics("free", substeps=3)}
 
 
 @pytest.mark.parametrize("kinds,paired", [
@@ -108,7 +152,7 @@ def test_every_pair_of_body_kinds_runs_or_is_refused(kinds, paired):
     # failed while tracing. Three steps run and stay finite.
     blocks = tuple(
         Body(f"block{index}", "steel", Rectangle((0.1 + 0.3 * index, 0.2), (0.25 + 0.3 * index, 0.3)),
-             kinematics=Kinematics(kind, (0.0, -0.1)) if kind == "prescribed" else Kinematics(kind))
+             kinematics=KINEMATICS_OF[kind])
         for index, kind in enumerate(kinds)
     )
     scene = Scene(

@@ -56,13 +56,18 @@ class PrescribedStep(NamedTuple):
 class RigidStep(NamedTuple):
     """A rigid body in one step: mass M [kg/m], centre of mass c (2,) [m], polar moment J about
     c [kg m^2/m] at the start of the step; the velocity (2,) and spin () it ends the step with
-    (before the solve: V + dt g and omega, its motion if nothing touched it)."""
+    (before the solve: V + dt g and omega, its motion if nothing touched it).
+
+    A subcycled body answers its contacts as one too (`subcycling`): then `base` is its
+    predicted nodal velocity (nx, ny, 2) and velocity and spin are the change dV, dw that the
+    impulses add to it (zero before the solve)."""
 
     mass: jax.Array
     centre: jax.Array
     inertia: jax.Array
     velocity: jax.Array
     spin: jax.Array
+    base: jax.Array | None = None
 
 
 def prescribed_velocity(block, velocity, time):
@@ -202,9 +207,31 @@ def impose_kinematic_fields(velocity, structure, motions, positions):
     return velocity
 
 
+def answering_blocks(structure):
+    """The bodies that answer their contacts as a whole, solved with their impulses: rigid
+    bodies, and subcycled free bodies (`subcycling`)."""
+    return tuple(block for block in structure.bodies if block.kinematics == "rigid" or block.substeps > 1)
+
+
+def node_velocity(motion, solved, positions):
+    """A body's velocity at the nodes `positions` (..., 2) for its solved (V_x, V_y, omega)
+    `solved` (3,): V + omega e_z x (x_I - c), added to `motion.base` for a subcycled body."""
+    velocity = solved[:2] + spin_velocity(solved[2], positions - motion.centre)
+    return velocity if motion.base is None else motion.base + velocity
+
+
+def subcycled_motion(particles, block, spacing, base):
+    """A subcycled body's RigidStep before the solve: its frame at the start of the step, its
+    predicted nodal velocity `base` (nx, ny, 2), no change yet."""
+    mass, centre, inertia = rigid_body_frame(particles, block, spacing)
+    zero = jnp.zeros((), mass.dtype)
+    return RigidStep(mass, centre, inertia, jnp.stack([zero, zero]), zero, base)
+
+
 def rigid_interfaces(structure):
-    """The interfaces between a rigid body's field and a free field, as (interface, rigid block)."""
-    rigid = {block.field: block for block in structure.blocks_of("rigid")}
+    """The interfaces between a rigid (or subcycled) body's field and a free field, as
+    (interface, that body's block)."""
+    rigid = {block.field: block for block in answering_blocks(structure)}
     found = []
     for interface in structure.interfaces:
         if interface.kinematic_first and interface.kinematic_second:
@@ -230,11 +257,10 @@ def rigid_residual(motion, grid, frictions, structure, frames, positions, normal
     J_c (omega - w*) - sum r x J, with `motion` (3 K,) the bodies' (V_x, V_y, omega) in
     block order, `frames` their RigidStep before the solve and `normals` the contact normal
     of each of `rigid_interfaces` (None for a bonded one; they do not depend on the motion)."""
-    blocks = structure.blocks_of("rigid")
+    blocks = answering_blocks(structure)
     velocity = grid.velocity
     for index, block in enumerate(blocks):
-        arm = positions - frames[block.name].centre
-        velocity = velocity.at[block.field].set(motion[3 * index:3 * index + 2] + spin_velocity(motion[3 * index + 2], arm))
+        velocity = velocity.at[block.field].set(node_velocity(frames[block.name], motion[3 * index:3 * index + 3], positions))
     received = {block.name: jnp.zeros_like(velocity[0]) for block in blocks}
     for (interface, block), normal in zip(rigid_interfaces(structure), normals):
         impulse = interface_impulse(interface, grid.mass, velocity, normal, frictions.get(interface.contact), grid.occupied)
@@ -254,7 +280,7 @@ def solve_rigid_motions(structure, motions, grid, frictions, positions):
     (the module's docstring): NEWTON_ITERATIONS Newton steps from the free motion, all but
     the last on values only; the last one differentiable with its Jacobian held, so that its
     derivative is -(dR/dq)^-1 dR/dparams, the implicit function theorem's."""
-    blocks = structure.blocks_of("rigid")
+    blocks = answering_blocks(structure)
     if not blocks:
         return motions
     frames = {block.name: motions[block.name] for block in blocks}
@@ -281,17 +307,25 @@ def solve_rigid_motions(structure, motions, grid, frictions, positions):
     return motions
 
 
-def impose_body_motions(params, state, structure, grid, frictions, time_new):
-    """(nodal velocities with each prescribed and rigid body's field moving as the body,
-    {body: its motion over the step}) from the free fields' trial `grid`: prescribed bodies on
-    their path, rigid bodies solved with their interfaces' impulses (`solve_rigid_motions`).
-    A scene without such bodies: the trial velocities and {}."""
-    if not structure.has_kinematic_bodies:
+def impose_body_motions(params, state, structure, grid, frictions, time_new, predicted=None):
+    """(nodal velocities with each prescribed, rigid and subcycled body's field moving as the
+    body, {body: its motion over the step}) from the free fields' trial `grid`: prescribed
+    bodies on their path, rigid bodies and subcycled ones (`predicted`: {name: RigidStep,
+    `subcycled_motion`}) solved with their interfaces' impulses
+    (`solve_rigid_motions`). A scene without such bodies: the trial velocities and {}."""
+    predicted = predicted or {}
+    if not structure.has_kinematic_bodies and not predicted:
         return grid.velocity, {}
     positions = node_positions(structure.layout, state.particles.x.dtype)
-    motions = free_motions(params, state, structure, time_new)
+    motions = {**free_motions(params, state, structure, time_new), **predicted}
     motions = jax.named_call(solve_rigid_motions, name="rigid_bodies")(structure, motions, grid, frictions, positions)
-    return impose_kinematic_fields(grid.velocity, structure, motions, positions), motions
+    velocity = impose_kinematic_fields(grid.velocity, structure, motions, positions)
+    for block in structure.bodies:
+        if block.name in predicted:
+            motion = motions[block.name]
+            solved = jnp.concatenate([motion.velocity, motion.spin[None]])
+            velocity = velocity.at[block.field].set(node_velocity(motion, solved, positions))
+    return velocity, motions
 
 
 def received_impulses(structure, impulses):

@@ -57,8 +57,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
-from jaxmpm.physics.bodies import Grid, impose_body_motions, keep_points_outside, move_kinematic_bodies
+from jaxmpm.physics.bodies import (
+    Grid, impose_body_motions, spin_velocity, subcycled_motion, keep_points_outside, move_kinematic_bodies, received_impulses,
+)
 from jaxmpm.physics.contact import Interface, resolve_interfaces
+from jaxmpm.physics.subcycling import (
+    advance_alone, alone, nodal_velocity, points_of, put_back, subcycled_blocks, touches,
+)
 from jaxmpm.physics.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
 )
@@ -80,7 +85,8 @@ class BodyBlock:
     body's region as convex polygon corners, counter-clockwise, at t = 0 (None: not convex, or a
     free body), and outline_centre the mean of its points then (`bodies.keep_points_outside`);
     memory: the fraction of its own velocity update its points keep per step, where it differs
-    from the scene's `Structure.memory` (`body_memory`)."""
+    from the scene's `Structure.memory` (`body_memory`); substeps: the steps a free body takes
+    of its own within each step (> 1: subcycled, `subcycling`)."""
 
     name: str
     material_name: str
@@ -93,10 +99,16 @@ class BodyBlock:
     outline: tuple | None = None
     outline_centre: tuple[float, float] | None = None
     memory: float | None = None
+    substeps: int = 1
 
     @property
     def points(self):
         return slice(self.start, self.stop)
+
+    @property
+    def deforms_in_step(self):
+        """Whether the step's own stress update moves it: a free body that is not subcycled."""
+        return self.kinematics == "free" and self.substeps == 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,8 +176,9 @@ class Nodes(NamedTuple):
     mass_gradient: jax.Array | None
 
 
-def particles_to_grid(particles, stencil, offsets, field, structure, gravity):
-    """Node mass m_I, momentum p_I, force f_I = sum_p (m_p N_I g - V_p sigma_p . grad N_I) and,
+def particles_to_grid(particles, stencil, offsets, field, structure, gravity, point_force=None):
+    """Node mass m_I, momentum p_I, force f_I = sum_p (N_I (m_p g + f_p) - V_p sigma_p . grad N_I)
+    (f_p: `point_force` (N, 2), None for none) and,
     with contact pairs, the mass gradient sum_p m_p grad N_I, each point into its own field.
     With APIC (`offsets`: x_I - x_p and y_I - y_p, (N, s, s) each) the momentum is
     m_p N_I (v_p + C_p (x_I - x_p)).
@@ -180,6 +193,8 @@ def particles_to_grid(particles, stencil, offsets, field, structure, gravity):
     velocity = components(particles.v)
     affine = components(particles.affine.reshape(-1, 4)) if offsets is not None else None   # C_xx, C_xy, C_yx, C_yy
     external = [mass * gravity[0], mass * gravity[1]]
+    if point_force is not None:
+        external = [external[axis] + point_force[:, axis] for axis in range(2)]
     if structure.axisymmetric:   # the hoop stress pulls the ring inwards: -V_p sigma_tt N_I / r_p
         external[0] = external[0] - volume * sigma_zz / point_radius(particles.x, structure)
     momentum, force = [], []
@@ -290,7 +305,7 @@ def keeps_velocity_gradient(structure):
 def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
     """Each run of free bodies of one material (`material_runs`) updates its points with the
     material's law; volumes follow det(I + dt L). Prescribed and rigid bodies keep their stress
-    and volume."""
+    and volume, and so do subcycled ones here (their substeps update them)."""
     stresses, histories, stretches = [], [], []
     # det(I + dt L), written out (cheaper than an LU per point): the in-plane 2x2 block times
     # the hoop stretch 1 + dt L_tt (which is 1 in plane strain, where L_tt = 0)
@@ -302,7 +317,7 @@ def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
         first, last = bodies[run[0]], bodies[run[-1]]
         points = slice(first.start, last.stop)
         run_histories = [particles.history[index] for index in run]
-        if first.kinematics != "free":
+        if not first.deforms_in_step:
             stresses.append(particles.stress_voigt[points])
             histories.extend(run_histories)
             stretches.append(jnp.ones_like(stretch[points]))
@@ -313,7 +328,7 @@ def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
         stresses.append(stress)
         histories.extend(split_at(history, [bodies[index].stop - first.start for index in run[:-1]]))
         stretches.append(stretch[points])
-    if any(block.kinematics != "free" for block in bodies):
+    if any(not block.deforms_in_step for block in bodies):
         stretch = jnp.concatenate(stretches)
     return particles.replace(
         stress_voigt=jnp.concatenate(stresses),
@@ -329,7 +344,7 @@ def material_runs(bodies):
     runs = []
     for index, block in enumerate(bodies):
         previous = bodies[index - 1] if index else None
-        shared = (previous is not None and block.kinematics == previous.kinematics == "free"
+        shared = (previous is not None and block.deforms_in_step and previous.deforms_in_step
                   and block.material_name == previous.material_name)
         if shared:
             runs[-1].append(index)
@@ -428,7 +443,12 @@ def make_step(structure: Structure):
     if structure.fields > 1:   # each point's velocity field, a compile-time constant
         fields = np.concatenate([np.full(b.stop - b.start, b.field, np.int32) for b in structure.bodies])
 
-    def step(params, state):
+    subcycled = subcycled_blocks(structure)
+    steps_alone = {block.name: make_step(alone(structure, block)) for _, block in subcycled}
+
+    def step(params, state, external=None):
+        """`external`: (N, 2) forces on the points besides their weight [N/m] (a subcycled
+        body's share of its contact impulses, `subcycling`), None for none."""
         field = None if fields is None else jnp.asarray(fields)
         particles = state.particles
         mask = boundary_mask(layout, structure.boundaries, particles.x.dtype)
@@ -445,20 +465,34 @@ def make_step(structure: Structure):
         gravity = params["scene"]["gravity"]
         damping = params["numerics"]["damping"] if structure.damped else None
         nodes = jax.named_call(particles_to_grid, name="particles_to_grid")(
-            particles, stencil, offsets, field, structure, gravity
+            particles, stencil, offsets, field, structure, gravity, external
         )
         velocity_old, velocity_new = jax.named_call(update_grid_velocity, name="update_grid")(
             nodes, dt, damping, constrain, floor
         )
         time_new = (state.step + 1).astype(particles.x.dtype) * dt
+        alone_before, alone_after, predicted = {}, {}, {}
+        for index, block in subcycled:   # predict: its substeps with nothing touching it
+            alone_before[block.name] = points_of(particles, index, block)
+            alone_after[block.name] = advance_alone(steps_alone[block.name], params, alone_before[block.name],
+                                                    block.substeps)
+            base = nodal_velocity(structure, layout.stencil(particles.x[block.points]), particles.x[block.points],
+                                  alone_after[block.name], nodes.mass[block.field], floor)
+            predicted[block.name] = subcycled_motion(particles, block, structure.point_spacing, base)
         grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, nodes.mass > floor)
-        velocity_new, motions = impose_body_motions(params, state, structure, grid, frictions, time_new)
+        velocity_new, motions = impose_body_motions(params, state, structure, grid, frictions, time_new, predicted)
         impulses = []
         if structure.interfaces:
             velocity_new, impulses = jax.named_call(resolve_interfaces, name="contact")(
                 structure.interfaces, nodes.mass, velocity_new, nodes.mass_gradient, frictions, nodes.mass > floor
             )
             velocity_new = constrain(velocity_new)
+        for index, block in subcycled:   # correct: its substeps again, taking its impulses
+            if touches(structure, block):
+                before, motion = alone_before[block.name], motions[block.name]
+                taken = motion.velocity + spin_velocity(motion.spin, before.x - motion.centre)
+                alone_after[block.name] = advance_alone(steps_alone[block.name], params,
+                                                        before.replace(v=before.v + taken), block.substeps)
         start = particles.x
         particles = jax.named_call(grid_to_particles, name="grid_to_particles")(
             particles, stencil, velocity_old, velocity_new, field, memory, dt, layout, structure.derivatives
@@ -479,6 +513,8 @@ def make_step(structure: Structure):
         particles = jax.named_call(update_stress, name="update_stress")(
             params["materials"], particles, gradient, structure.bodies, dt, structure.axisymmetric
         )
+        for index, block in subcycled:
+            particles = put_back(particles, index, block, alone_after[block.name])
         state = record_errors(state.replace(particles=particles), layout.outside(particles.x))
         return state, Diagnostics(contact_forces(structure, impulses, dt), reactions)
 

@@ -3,9 +3,10 @@
 The explicit step is stable while no wave and no body crosses a cell in one step:
     dt <= h / max over bodies of s_b,
 s_b = c_p + |v0| for a free body (its p-wave speed from its material, plus its speed), and
-the speed alone for a prescribed or rigid body (their stiffness never sets the step). A scene
-runs at dt = cfl * that limit, or at its own `scene.dt`, trimmed down so that a whole number
-of steps fills each output interval (`time_stepping`). The step is then fixed: parameter
+the speed alone for a prescribed, rigid or subcycled body (their stiffness never sets the step).
+A scene runs at dt = cfl * that limit, or at its own `scene.dt`, trimmed down so that a whole
+number of steps fills each output interval (`time_stepping`); a subcycled body takes n steps
+of dt / n within it, n given or the fewest with dt / n <= cfl h / s_b (`substeps`). The step is then fixed: parameter
 values given later (calibration, `--set` on a compiled simulation, initial velocities) are
 checked against it (`material_limits`, `exceeds`), never used to change it.
 """
@@ -29,15 +30,41 @@ def body_speed(scene, body, params=None, initial_speed=None) -> float:
         return body.kinematics.top_speed
     if body.kinematics.type == "rigid":
         return motion
+    return own_speed(scene, body, params, motion)
+
+
+def own_speed(scene, body, params=None, motion=None) -> float:
+    """c_p + |v| of a free body, subcycled or not [m/s] (`body_speed`)."""
     material = scene.material_of(body)
     values = material_parameters(material) if params is None else params
+    motion = math.hypot(*body.velocity) if motion is None else motion
     return float(material.wave_speed(values)) + motion
 
 
 def stable_limit(scene) -> float:
-    """h / max over bodies of s_b [s] (inf when nothing moves or carries waves)."""
-    speed = max(body_speed(scene, body) for body in scene.bodies)
+    """h / max over bodies of s_b [s] (inf when nothing moves or carries waves); a subcycled
+    body counts with its speed alone."""
+    speed = max(math.hypot(*body.velocity) if body.kinematics.subcycled else body_speed(scene, body)
+                for body in scene.bodies)
     return scene.grid.cell / speed if speed > 0.0 else math.inf
+
+
+def substeps(scene, body, dt) -> int:
+    """The steps a body takes within each scene step dt: 1 unless subcycled; its given n, or
+    for "auto" the fewest with dt / n <= cfl * h / (c_p + |v|). SceneError if a given n
+    leaves its substep above its stable limit."""
+    if not body.kinematics.subcycled:
+        return 1
+    limit = scene.grid.cell / own_speed(scene, body)
+    if body.kinematics.substeps == "auto":
+        return max(1, math.ceil(dt / (scene.cfl * limit) * (1.0 - STEP_SLACK)))
+    count = int(body.kinematics.substeps)
+    if exceeds(dt / count, limit):
+        raise SceneError(
+            f"body {body.name!r}: kinematics.substeps = {count} leaves its step {dt / count:.4g} s above its stable "
+            f"limit {limit:.4g} s (cell / its p-wave speed): give at least {math.ceil(dt / limit)}, or 'auto'."
+        )
+    return count
 
 
 def exceeds(dt: float, limit: float) -> bool:
@@ -73,14 +100,18 @@ def time_stepping(scene):
 
 
 def material_limits(scene, materials, body_speeds=None) -> dict:
-    """{material: h / (c_p + speed of its fastest free body)} for parameter values
-    `materials` ({material: {name: value}}) [s]; a body's speed is its scene velocity, or
-    body_speeds[body name] when given (e.g. the largest |v| of its points in a state)."""
+    """{material: h / (c_p + speed of its fastest free body), times n for a body subcycled n
+    times} for parameter values `materials` ({material: {name: value}}) [s]; a body's speed is
+    its scene velocity, or body_speeds[body name] when given (e.g. the largest |v| of its
+    points in a state)."""
     limits = {}
+    dt = time_stepping(scene)[0] if any(body.kinematics.subcycled for body in scene.bodies) else None
     for body in scene.bodies:
         if body.kinematics.type != "free":
             continue
         moving = None if body_speeds is None else body_speeds.get(body.name)
         limit = scene.grid.cell / body_speed(scene, body, materials[body.material], moving)
+        if body.kinematics.subcycled:     # its steps are dt / n
+            limit = limit * substeps(scene, body, dt)
         limits[body.material] = min(limit, limits.get(body.material, limit))
     return limits

@@ -43,7 +43,7 @@ from jaxmpm.physics.solver import (
     BodyBlock, Structure, body_memory, kept_grid_bytes, kept_solve_bytes, make_step, transfer_memory,
 )
 from jaxmpm.physics.state import Diagnostics, Particles, RigidMotion, State, counters_at_start
-from jaxmpm.physics.time_step import exceeds, material_limits, time_stepping
+from jaxmpm.physics.time_step import exceeds, material_limits, substeps, time_stepping
 from jaxmpm.running.tracing import collector_paused
 
 
@@ -67,16 +67,18 @@ def slowest_crossing_time(scene: Scene) -> float:
 
 def velocity_fields(scene: Scene):
     """(field of each body, number of fields, interfaces): bodies of a contact pair and
-    prescribed or rigid bodies get a field each; all other bodies share field 0 (no slip
-    among them). Every pair of fields meets at an interface: frictional contact for a declared
-    pair, bonded (no slip) otherwise; two prescribed or rigid fields ignore each other."""
+    prescribed, rigid or subcycled bodies get a field each; all other bodies share field 0 (no
+    slip among them). Every pair of fields meets at an interface: frictional contact for a
+    declared pair, bonded (no slip) otherwise; two prescribed, rigid or subcycled fields ignore
+    each other."""
     paired = {name for contact in scene.contacts for name in contact.pair}
-    own = [body.name for body in scene.bodies if body.name in paired or body.kinematics.type != "free"]
+    whole = {body.name for body in scene.bodies if body.kinematics.type != "free" or body.kinematics.subcycled}
+    own = [body.name for body in scene.bodies if body.name in paired or body.name in whole]
     shared = [body.name for body in scene.bodies if body.name not in own]
     field = {name: 0 for name in shared}
     field.update({name: index + bool(shared) for index, name in enumerate(own)})
     count = len(own) + bool(shared)
-    kinematic = {field[body.name] for body in scene.bodies if body.kinematics.type != "free"}
+    kinematic = {field[name] for name in whole}    # keep their velocity in contact (`contact.Interface`)
     prescribed = {field[body.name] for body in scene.bodies if body.kinematics.type == "prescribed"}
     contacts = {frozenset(field[name] for name in contact.pair): contact for contact in scene.contacts}
     interfaces = []
@@ -117,7 +119,8 @@ class Simulation:
         blocks = tuple(
             BodyBlock(body.name, body.material, scene.material_of(body).law, start, stop, field[body.name],
                       body.kinematics.type, body.kinematics.time, *self.outline_of(body, start, stop),
-                      memory=body_memory(memory, scene.material_of(body).law, scene.transfer, scene.numerics.relaxation))
+                      memory=body_memory(memory, scene.material_of(body).law, scene.transfer, scene.numerics.relaxation),
+                      substeps=substeps(scene, body, self.dt))
             for body, (start, stop) in zip(scene.bodies, self.seeds.slices)
         )
         self.structure = Structure(

@@ -146,6 +146,11 @@ def check_kinematics(key: str, kinematics: Kinematics):
     """SceneError unless the kinematics are complete and consistent."""
     if kinematics.type not in KINEMATICS:
         raise SceneError(f"{key}.type = {kinematics.type!r} is not one of {', '.join(map(repr, KINEMATICS))}.")
+    if kinematics.substeps is not None:
+        if kinematics.type != "free":
+            raise SceneError(f"{key}.substeps = {kinematics.substeps!r} is given for a {kinematics.type} body: only free "
+                             "bodies take steps of their own.")
+        check_value(f"{key}.substeps", _section("bodies", "kinematics").key("substeps", "free"), kinematics.substeps)
     if kinematics.type != "prescribed":
         if kinematics.velocity is not None or kinematics.time is not None:
             raise SceneError(f"{key} gives a velocity table for a {kinematics.type} body: only prescribed bodies take one.")
@@ -182,6 +187,12 @@ def check_axisymmetric(scene):
     if scene.gravity[0] != 0.0:
         raise SceneError(f"scene.gravity = {list(scene.gravity)}: in axisymmetry gravity is axial, so gravity[0] must be 0.")
     for index, body in enumerate(scene.bodies):
+        if body.kinematics.subcycled:
+            raise SceneError(
+                f"bodies[{index}].kinematics.substeps = {body.kinematics.substeps!r} is not available in axisymmetry "
+                "(a subcycled body answers its contacts as a rigid body, which cannot turn in the (r, z) plane): "
+                "remove it, and the body sets the step."
+            )
         if body.kinematics.type == "rigid":
             raise SceneError(
                 f"bodies[{index}].kinematics.type = 'rigid' is not available in axisymmetry (a ring cannot turn in "
@@ -192,6 +203,7 @@ def check_axisymmetric(scene):
 def check_contacts(scene):
     names = [body.name for body in scene.bodies]
     kinds = {body.name: body.kinematics.type for body in scene.bodies}
+    subcycled_bodies = {body.name: body.kinematics.subcycled for body in scene.bodies}
     declared = []
     for index, contact in enumerate(scene.contacts):
         check_fields(contact, _section("contacts"), f"contacts[{index}]")
@@ -206,6 +218,12 @@ def check_contacts(scene):
             raise SceneError(
                 f"{key} = {list(contact.pair)} pairs two bodies that are not free ({kinds[first]} and "
                 f"{kinds[second]}): contact needs at least one deformable (free) body."
+            )
+        subcycled = [name for name in contact.pair if kinds[name] == "free" and subcycled_bodies.get(name)]
+        if subcycled and (len(subcycled) == 2 or any(kinds[name] != "free" for name in contact.pair)):
+            raise SceneError(
+                f"{key} = {list(contact.pair)} pairs the subcycled body {subcycled[0]!r} with a body that is "
+                "subcycled, prescribed or rigid: a subcycled body's contacts are with free bodies that step with the scene."
             )
         if set(contact.pair) in declared:
             raise SceneError(f"{key} = {list(contact.pair)}: these two bodies are already paired.")

@@ -152,11 +152,22 @@ class Kinematics:
     rigid       moves as one body (translation and rotation) under gravity and the forces of
                 the bodies around it, no stress update.
     Prescribed and rigid bodies never set the time step: their stiffness plays no part.
+
+    substeps (free bodies): None or 1, the body steps with the scene; n > 1 or "auto", the
+    body takes n steps of its own within each step of the scene (subcycling, for a stiff
+    structure whose p-wave would otherwise set the step: `physics.subcycling`); it then does not
+    set the scene's step, and "auto" takes the fewest substeps that keep it within scene.cfl.
     """
 
     type: str = "free"
     velocity: tuple | None = None
     time: tuple[float, ...] | None = None
+    substeps: int | str | None = None
+
+    @property
+    def subcycled(self) -> bool:
+        """Whether the body takes steps of its own within the scene's (substeps n > 1 or "auto")."""
+        return self.type == "free" and self.substeps not in (None, 1)
 
     @property
     def top_speed(self) -> float:

@@ -96,7 +96,14 @@ KINEMATICS_TABLE = Section(
          "not in axisymmetry)", default="free", choices=KINEMATICS),),
     "how the body moves",
     variant_key="type",
-    variants={"prescribed": (
+    variants={"free": (
+        Key("substeps", "int", "steps the body takes within each step of the scene (subcycling, for a stiff "
+            "structure); 'auto': the fewest that keep it within scene.cfl. A subcycled body does not set the "
+            "scene's step. Its contacts are resolved once per scene step, and it takes their impulse as a whole "
+            "(with its mass and moment of inertia, as a rigid body): its substeps carry its deformation under its "
+            "weight and inertia, not the local deformation a contact load would cause. Not in axisymmetry; "
+            "absent: 1", default=None, low=1, low_inclusive=True, words=("auto",)),
+    ), "prescribed": (
         Key("velocity", "vec2_or_points", "the prescribed velocity [vx, vy], or one [vx, vy] per entry of "
             "time (linear in between, held after the last); a parameter: params['bodies'][NAME]['velocity']",
             unit="m/s"),
