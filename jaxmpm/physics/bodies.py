@@ -56,18 +56,15 @@ class PrescribedStep(NamedTuple):
 class RigidStep(NamedTuple):
     """A rigid body in one step: mass M [kg/m], centre of mass c (2,) [m], polar moment J about
     c [kg m^2/m] at the start of the step; the velocity (2,) and spin () it ends the step with
-    (before the solve: V + dt g and omega, its motion if nothing touched it).
-
-    A subcycled body answers its contacts as one too (`subcycling`): then `base` is its
-    predicted nodal velocity (nx, ny, 2) and velocity and spin are the change dV, dw that the
-    impulses add to it (zero before the solve)."""
+    (before the solve: V + dt g and omega, its motion if nothing touched it). A subcycled body
+    meets its contacts as one too (`subcycling`): before the solve, its velocity and spin are
+    those its substeps predict."""
 
     mass: jax.Array
     centre: jax.Array
     inertia: jax.Array
     velocity: jax.Array
     spin: jax.Array
-    base: jax.Array | None = None
 
 
 def prescribed_velocity(block, velocity, time):
@@ -213,21 +210,6 @@ def answering_blocks(structure):
     return tuple(block for block in structure.bodies if block.kinematics == "rigid" or block.substeps > 1)
 
 
-def node_velocity(motion, solved, positions):
-    """A body's velocity at the nodes `positions` (..., 2) for its solved (V_x, V_y, omega)
-    `solved` (3,): V + omega e_z x (x_I - c), added to `motion.base` for a subcycled body."""
-    velocity = solved[:2] + spin_velocity(solved[2], positions - motion.centre)
-    return velocity if motion.base is None else motion.base + velocity
-
-
-def subcycled_motion(particles, block, spacing, base):
-    """A subcycled body's RigidStep before the solve: its frame at the start of the step, its
-    predicted nodal velocity `base` (nx, ny, 2), no change yet."""
-    mass, centre, inertia = rigid_body_frame(particles, block, spacing)
-    zero = jnp.zeros((), mass.dtype)
-    return RigidStep(mass, centre, inertia, jnp.stack([zero, zero]), zero, base)
-
-
 def rigid_interfaces(structure):
     """The interfaces between a rigid (or subcycled) body's field and a free field, as
     (interface, that body's block)."""
@@ -260,7 +242,8 @@ def rigid_residual(motion, grid, frictions, structure, frames, positions, normal
     blocks = answering_blocks(structure)
     velocity = grid.velocity
     for index, block in enumerate(blocks):
-        velocity = velocity.at[block.field].set(node_velocity(frames[block.name], motion[3 * index:3 * index + 3], positions))
+        arm = positions - frames[block.name].centre
+        velocity = velocity.at[block.field].set(motion[3 * index:3 * index + 2] + spin_velocity(motion[3 * index + 2], arm))
     received = {block.name: jnp.zeros_like(velocity[0]) for block in blocks}
     for (interface, block), normal in zip(rigid_interfaces(structure), normals):
         impulse = interface_impulse(interface, grid.mass, velocity, normal, frictions.get(interface.contact), grid.occupied)
@@ -310,8 +293,8 @@ def solve_rigid_motions(structure, motions, grid, frictions, positions):
 def impose_body_motions(params, state, structure, grid, frictions, time_new, predicted=None):
     """(nodal velocities with each prescribed, rigid and subcycled body's field moving as the
     body, {body: its motion over the step}) from the free fields' trial `grid`: prescribed
-    bodies on their path, rigid bodies and subcycled ones (`predicted`: {name: RigidStep,
-    `subcycled_motion`}) solved with their interfaces' impulses
+    bodies on their path, rigid bodies and subcycled ones (`predicted`: {name: RigidStep of
+    its predicted motion, `subcycling.predict`}) solved with their interfaces' impulses
     (`solve_rigid_motions`). A scene without such bodies: the trial velocities and {}."""
     predicted = predicted or {}
     if not structure.has_kinematic_bodies and not predicted:
@@ -322,9 +305,7 @@ def impose_body_motions(params, state, structure, grid, frictions, time_new, pre
     velocity = impose_kinematic_fields(grid.velocity, structure, motions, positions)
     for block in structure.bodies:
         if block.name in predicted:
-            motion = motions[block.name]
-            solved = jnp.concatenate([motion.velocity, motion.spin[None]])
-            velocity = velocity.at[block.field].set(node_velocity(motion, solved, positions))
+            velocity = velocity.at[block.field].set(Rigid.velocity_at(motions[block.name], positions, 0.0))
     return velocity, motions
 
 

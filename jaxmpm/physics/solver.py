@@ -17,6 +17,12 @@
     velocity  = remap_velocity (MUSL only)   nodal velocity from the updated points
     particles = update_stress                L = grad v, each free body's material, volume
 
+A subcycled free body (a stiff structure, `subcycling`) takes its own n steps of dt / n alone
+on the grid twice: before the rigid-body solve (`predict`: its motion if nothing touched it,
+from which the solve starts, the body meeting its contacts as one) and after the contacts
+(`correct`: again from the start, with the impulses it received); its points then take that
+result in place of the step's update.
+
 Bodies talk to the grid through velocity fields (node arrays carry a leading field axis):
 bodies of a contact pair and prescribed or rigid bodies get one each, all others share one.
 A scene with neither has one field and compiles exactly the single-field step.
@@ -58,12 +64,10 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from jaxmpm.physics.bodies import (
-    Grid, impose_body_motions, spin_velocity, subcycled_motion, keep_points_outside, move_kinematic_bodies, received_impulses,
+    Grid, impose_body_motions, keep_points_outside, move_kinematic_bodies, received_impulses,
 )
 from jaxmpm.physics.contact import Interface, resolve_interfaces
-from jaxmpm.physics.subcycling import (
-    advance_alone, alone, nodal_velocity, points_of, put_back, subcycled_blocks, touches,
-)
+from jaxmpm.physics.subcycling import alone, correct, predict, put_back, subcycled_blocks
 from jaxmpm.physics.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
 )
@@ -471,28 +475,18 @@ def make_step(structure: Structure):
             nodes, dt, damping, constrain, floor
         )
         time_new = (state.step + 1).astype(particles.x.dtype) * dt
-        alone_before, alone_after, predicted = {}, {}, {}
-        for index, block in subcycled:   # predict: its substeps with nothing touching it
-            alone_before[block.name] = points_of(particles, index, block)
-            alone_after[block.name] = advance_alone(steps_alone[block.name], params, alone_before[block.name],
-                                                    block.substeps)
-            base = nodal_velocity(structure, layout.stencil(particles.x[block.points]), particles.x[block.points],
-                                  alone_after[block.name], nodes.mass[block.field], floor)
-            predicted[block.name] = subcycled_motion(particles, block, structure.point_spacing, base)
+        prediction = predict(steps_alone, params, particles, structure, subcycled)
         grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, nodes.mass > floor)
-        velocity_new, motions = impose_body_motions(params, state, structure, grid, frictions, time_new, predicted)
+        velocity_new, motions = impose_body_motions(params, state, structure, grid, frictions, time_new,
+                                                    prediction.motions)
         impulses = []
         if structure.interfaces:
             velocity_new, impulses = jax.named_call(resolve_interfaces, name="contact")(
                 structure.interfaces, nodes.mass, velocity_new, nodes.mass_gradient, frictions, nodes.mass > floor
             )
             velocity_new = constrain(velocity_new)
-        for index, block in subcycled:   # correct: its substeps again, taking its impulses
-            if touches(structure, block):
-                before, motion = alone_before[block.name], motions[block.name]
-                taken = motion.velocity + spin_velocity(motion.spin, before.x - motion.centre)
-                alone_after[block.name] = advance_alone(steps_alone[block.name], params,
-                                                        before.replace(v=before.v + taken), block.substeps)
+        ended = correct(steps_alone, params, structure, subcycled, prediction, motions,
+                        received_impulses(structure, impulses), nodes.mass, floor)
         start = particles.x
         particles = jax.named_call(grid_to_particles, name="grid_to_particles")(
             particles, stencil, velocity_old, velocity_new, field, memory, dt, layout, structure.derivatives
@@ -514,7 +508,7 @@ def make_step(structure: Structure):
             params["materials"], particles, gradient, structure.bodies, dt, structure.axisymmetric
         )
         for index, block in subcycled:
-            particles = put_back(particles, index, block, alone_after[block.name])
+            particles = put_back(particles, index, block, ended[block.name])
         state = record_errors(state.replace(particles=particles), layout.outside(particles.x))
         return state, Diagnostics(contact_forces(structure, impulses, dt), reactions)
 

@@ -5,40 +5,42 @@ body it sets a step that much shorter for the whole scene. A subcycled body (`ki
 in the scene file) takes n steps of dt / n of its own instead, alone on the grid, inside each
 step of the scene:
 
-  predict  its n substeps under gravity and its own stress: the velocity v*_p it would end the
-           step with if nothing touched it, put on its field's nodes in the configuration of
-           the start of the step, v*_I = sum_p m_p N_I (v*_p + C*_p (x_I - x_p)) / m_I
-  contact  its interfaces are resolved once per scene step, the body answering the impulses J_I
-           it receives as a whole, with its mass M and polar moment J_c
-           (`bodies.solve_rigid_motions`): u_I = v*_I + dV + dw e_z x (x_I - c),
-           M dV = sum_I J_I, J_c dw = sum_I (x_I - c) x J_I; the free fields end the step
-           moving with u_I where they meet it
-  correct  its n substeps again from the start of the step, each of its points pushed by its
-           share of the impulses, f_p = m_p sum_I N_I(x_p) J_I / (m_I dt) (which sums to
-           sum_I J_I / dt): the body takes the impulse over the step, moving and deforming
+  predict  its n substeps under gravity and its own stress, nothing touching it; their end
+           velocities v*_p as one body: V* = sum m_p v*_p / M, w* = sum m_p r_p x v*_p / J_c
+           (r_p = x_p - c at the start of the step; M, c, J_c as for a rigid body)
+  contact  its interfaces are resolved once per scene step with the body moving as one, as a
+           rigid body's are (`bodies.solve_rigid_motions`): V, w solve M (V - V*) = sum_I J_I,
+           J_c (w - w*) = sum_I (x_I - c) x J_I, and the free fields end the step moving with
+           V + w e_z x (x_I - c) where they meet it
+  correct  its n substeps again from the start of the step: its points first take the change
+           (V - V*) + (w - w*) e_z x r_p as one body, and at every substep each point carries
+           its share of the impulses less that rigid part,
+               f_p = m_p sum_I N_I(x_p) J_I / (m_I dt) - m_p (a + alpha e_z x r_p),
+           (a, alpha) the uniform and rotational acceleration of the shares themselves, so the
+           f_p have no resultant and no moment: they only strain the body, as the contact load
+           and the inertia of its motion do (its bending under the earth pressure).
 
-The share goes to the points, not to the nodes: a node the body only grazes (small m_I) can
-receive the impulse of much more sand, and as a node force J_I / dt it accelerated that node
-without bound (the small wall of docs/convergence.md then moved 14 % too far, and further as
-dt shrank).
-
-So in the stiff limit the body is a rigid body (its answer is the rigid body's exactly), and it
-bends under the load it takes. What it does not hold is a response local to the contact within
-one scene step (for a stiff body, small against its motion as a whole), and its answer counts no
-support: a body held by a grid edge or bonded to the soil below answers as if free to move
-(the correction then holds it, and the soil meets it a step late). It costs 2 n substeps of the
-body's points alone on the grid (n without interfaces). docs/convergence.md measures it against
-the same body at the small step.
+So the body meets its contacts exactly as a rigid body of its shape does (its stiff limit),
+and carries the stresses of its weight, its motion and its contact loads. The contact does not
+see its deformation velocities: a body whose deflection moves its face comparably to its motion
+as a whole is not stiff enough to be subcycled. Its answer counts no support either: a body held
+by a grid edge answers its contacts as if free. The shares go to points, not to nodes: a node the
+body only grazes can receive the impulse of much more sand, and as a node force it accelerated
+that node without bound. Letting the contact see the predicted nodal velocities instead of the
+motion as one made the local load's vibration a ratchet (a small wall moved 16 % too far,
+docs/convergence.md). It costs 2 n substeps of the body's points alone on the grid (n when it
+meets no other field); docs/convergence.md measures it against the same body at its own small step.
 """
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from jaxmpm.physics.grid import fold_ghosts, scatter_to_nodes
+from jaxmpm.physics.bodies import RigidStep, cross, rigid_body_frame, spin_velocity
+from jaxmpm.physics.grid import read_at_stencils
 from jaxmpm.physics.state import State, counters_at_start
-from jaxmpm.tensors import stack_last
 
 
 def subcycled_blocks(structure):
@@ -99,18 +101,71 @@ def per_node(values, mass, floor):
     return jnp.where(occupied, values / jnp.where(occupied, mass[..., None], 1.0), 0.0)
 
 
-def nodal_velocity(structure, stencil, start, predicted, mass, floor):
-    """v*_I (nx, ny, 2): the points' predicted velocities on the nodes of their positions
-    `start` (`stencil` there) at the start of the step, sum_p m_p N_I (v*_p + C*_p (x_I - x_p))
-    / m_I (without C*_p for FLIP), with m_I = `mass` (nx, ny) the field's mass."""
-    layout = structure.layout
-    weighted = predicted.mass[:, None, None] * stencil.weights
-    moving = [jnp.broadcast_to(predicted.v[:, axis, None, None], weighted.shape) for axis in range(2)]
-    if structure.transfer == "apic":
-        offsets = layout.node_offsets(stencil.base, start, stencil.weights.shape[1])
-        affine = predicted.affine
-        moving = [moving[axis] + affine[:, axis, 0, None, None] * offsets[0] + affine[:, axis, 1, None, None] * offsets[1]
-                  for axis in range(2)]
-    momentum = scatter_to_nodes(layout, stencil.base, stack_last([weighted * part for part in moving]))
-    momentum = fold_ghosts(momentum, layout, structure.boundaries, scalars=0)[0]
-    return per_node(momentum, mass, floor)
+class Prediction(NamedTuple):
+    """The predict phase of the subcycled bodies, each {body name: ...}: their Particles at the
+    start of the step (`before`) and after their substeps untouched (`after`), and their
+    motion as one body then (`motions`: RigidStep, the contact solve's starting point)."""
+
+    before: dict
+    after: dict
+    motions: dict
+
+
+def predict(steps_alone, params, particles, structure, blocks):
+    """The predict phase of every subcycled body (module docstring), a Prediction."""
+    before, after, motions = {}, {}, {}
+    for index, block in blocks:
+        before[block.name] = points_of(particles, index, block)
+        after[block.name] = advance_alone(steps_alone[block.name], params, before[block.name], block.substeps)
+        motions[block.name] = as_one(particles, block, after[block.name], structure.point_spacing)
+    return Prediction(before, after, motions)
+
+
+def as_one(particles, block, moved, spacing):
+    """RigidStep of a body's points `moved` (they alone) as one body: its frame (M, c, J_c)
+    from `particles` (all, at the start of the step), V = sum m_p v_p / M and
+    w = sum m_p r_p x v_p / J_c with r_p from the start."""
+    mass, centre, inertia = rigid_body_frame(particles, block, spacing)
+    velocity = jnp.dot(moved.mass, moved.v) / mass
+    spin = jnp.dot(moved.mass, cross(particles.x[block.points] - centre, moved.v)) / inertia
+    return RigidStep(mass, centre, inertia, velocity, spin)
+
+
+def correct(steps_alone, params, structure, blocks, prediction, motions, received, mass, floor):
+    """The correct phase: {body: its Particles at the end of the step}. A body that meets
+    another field takes its substeps again from the start, its points first given the change
+    of its motion as one (its solved `motions` less `prediction.motions`), each then carrying
+    its balanced share of the impulses `received` ({field: (nx, ny, 2)}; `mass` (F, nx, ny)
+    the step's node masses). One that meets none keeps its prediction."""
+    ended = dict(prediction.after)
+    for _, block in blocks:
+        if not touches(structure, block):
+            continue
+        points, motion, guess = prediction.before[block.name], motions[block.name], prediction.motions[block.name]
+        arm = points.x - motion.centre
+        taken = motion.velocity - guess.velocity + spin_velocity(motion.spin - guess.spin, arm)
+        shares = balanced(impulse_shares(structure, points, received[block.field], mass[block.field], floor), points.mass,
+                          arm)
+        ended[block.name] = advance_alone(steps_alone[block.name], params, points.replace(v=points.v + taken),
+                                          block.substeps, shares)
+    return ended
+
+
+def impulse_shares(structure, points, received, mass, floor):
+    """f_p = m_p sum_I N_I(x_p) J_I / (m_I dt) (n, 2) [N/m]: each point's share of the impulses
+    `received` (nx, ny, 2) by its field (node masses `mass`), as a force over the step; they
+    sum to sum_I J_I / dt."""
+    stencil = structure.layout.stencil(points.x)
+    support = stencil.weights.shape[1]
+    gathered = read_at_stencils(structure.layout, stencil.base, per_node(received, mass, floor)[None], support)
+    return points.mass[:, None] * jnp.sum(stencil.weights[..., None] * gathered, axis=(1, 2)) / structure.dt
+
+
+def balanced(forces, masses, arms):
+    """forces (n, 2) less m_p (a + alpha e_z x r_p), the uniform and rotational acceleration
+    they give the points (masses (n,), arms r_p (n, 2) from any centre): no resultant, no moment."""
+    total = jnp.sum(masses)
+    arms = arms - jnp.dot(masses, arms) / total
+    acceleration = jnp.sum(forces, axis=0) / total
+    turning = jnp.sum(cross(arms, forces)) / jnp.dot(masses, arms[:, 0] ** 2 + arms[:, 1] ** 2)
+    return forces - masses[:, None] * (acceleration + spin_velocity(turning, arms))
