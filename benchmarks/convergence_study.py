@@ -1,7 +1,7 @@
 """Time-step and cell convergence of the headline quantities: the tables of docs/convergence.md.
 
     python benchmarks/convergence_study.py                 # every study (about 25 min on 2 cores)
-    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | examples | cells | example_cells
+    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | subcycled | examples | cells | example_cells
 
 Each run is a forward run of a scene at some numerics; the quantities are read at every
 output time and the largest relative change between two runs is reported.
@@ -18,6 +18,9 @@ output time and the largest relative change between two runs is reported.
 - examples: the headline quantities of examples/retaining_wall.toml (wall top, rotation;
   first 0.4 s), pile_driving.toml (head force at 5 and 10 cm, heave; first 0.2 s) and
   column_collapse.toml (front, centre of mass; the whole 1 s) at the shipped cfl and at half.
+- subcycled: the same two elastic walls and the elastic pile subcycled at the sand's step
+  (`kinematics.substeps = "auto"`), against each as an ordinary free body at its own step
+  (brute force) and against the rigid body at the sand's step; with run times.
 - cells: the small wall at h, h/2, h/4 (ppc 2) and at h with ppc 3: observed order and the
   Richardson-extrapolated value p = log2((q_h - q_h/2) / (q_h/2 - q_h/4)),
   q* = q_h/4 + (q_h/4 - q_h/2) / (2^p - 1).
@@ -238,6 +241,48 @@ def pile_study():
           + " | ".join(f"{v:.2f}" for v in sink) + " | | |")
 
 
+def subcycled_study():
+    """Stiff walls and a pile subcycled at the sand's step, against the same body as an ordinary
+    free body at its own step (brute force) and the rigid body at the sand's step."""
+    import jaxmpm
+
+    print("\n### Subcycled stiff walls: top displacement [mm] at 0.1 / 0.2 s\n")
+    print("| wall | cfl (sand) | dt [µs] | substeps | steps | top at 0.1 s | top at 0.2 s | against brute force | run [s] |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for young in (3.0e9, 30.0e9):
+        t_ref, reference, steps, seconds = run(small_wall("free", young))
+        top = -1e3 * at_times(t_ref, reference["wall_top"][:, 0], (0.1, 0.2))
+        print(f"| elastic, E = {young / 1e9:g} GPa, brute force | | {1e6 * t_ref[1]:.2f} | 1 | {steps} | {top[0]:.2f} | "
+              f"{top[1]:.2f} | | {seconds:.0f} |")
+        for label, kinematics in (("subcycled", "free"), ("rigid", "rigid")):
+            for cfl in (0.4, 0.2):
+                scene = small_wall(kinematics, young, **{"scene.cfl": cfl})
+                if kinematics == "free":
+                    scene = scene.with_value("bodies.wall.kinematics.substeps", "auto")
+                substeps = {b.name: b.substeps for b in jaxmpm.Simulation(scene).structure.bodies}["wall"]
+                t, probes, steps, seconds = run(scene)
+                top = -1e3 * at_times(t, probes["wall_top"][:, 0], (0.1, 0.2))
+                change = most_apart(t, probes["wall_top"][:, 0], t_ref, reference["wall_top"][:, 0], 0.02)
+                print(f"| {label}, E = {young / 1e9:g} GPa | {cfl} | {1e6 * t[1]:.1f} | {substeps} | {steps} | {top[0]:.2f} | "
+                      f"{top[1]:.2f} | {change} | {seconds:.0f} |")
+    print("\n### Dropped pile subcycled (E = 30 GPa): sinking [mm] at 0.05 / 0.07 / 0.1 s\n")
+    print("| pile | dt [µs] | substeps | steps | 0.05 s | 0.07 s | 0.1 s | against brute force | run [s] |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    times = (0.05, 0.07, 0.1)
+    t_ref, reference, steps, seconds = run(jaxmpm.Scene.from_toml(PILE_SCENE.format(kinematics="free")))
+    sink = -1e3 * at_times(t_ref, reference["sink"][:, 1], times)
+    print(f"| elastic, brute force | {1e6 * t_ref[1]:.2f} | 1 | {steps} | " + " | ".join(f"{v:.2f}" for v in sink)
+          + f" | | {seconds:.0f} |")
+    for label, scene in (("subcycled", jaxmpm.Scene.from_toml(PILE_SCENE.format(kinematics="free")).with_value(
+            "bodies.pile.kinematics.substeps", "auto")), ("rigid", jaxmpm.Scene.from_toml(PILE_SCENE.format(kinematics="rigid")))):
+        substeps = {b.name: b.substeps for b in jaxmpm.Simulation(scene).structure.bodies}["pile"]
+        t, probes, steps, seconds = run(scene)
+        sink = -1e3 * at_times(t, probes["sink"][:, 1], times)
+        change = most_apart(t, probes["sink"][:, 1], t_ref, reference["sink"][:, 1], 0.01)
+        print(f"| {label} | {1e6 * t[1]:.1f} | {substeps} | {steps} | " + " | ".join(f"{v:.2f}" for v in sink)
+              + f" | {change} | {seconds:.0f} |")
+
+
 def pile_force(t, probes):
     """Head force [N] averaged within 5 mm of 5 and 10 cm of penetration, and the heave [mm]
     at the end (examples/pile_driving.toml)."""
@@ -374,7 +419,7 @@ def example_cells_study(names=("retaining_wall", "pile_driving", "column_collaps
                   flush=True)
 
 
-STUDIES = {"wall": wall_study, "stiff": stiff_study, "examples": examples_study, "cells": cells_study,
+STUDIES = {"wall": wall_study, "stiff": stiff_study, "subcycled": subcycled_study, "examples": examples_study, "cells": cells_study,
            "example_cells": example_cells_study}
 
 
