@@ -167,5 +167,6 @@ def balanced(forces, masses, arms):
     total = jnp.sum(masses)
     arms = arms - jnp.dot(masses, arms) / total
     acceleration = jnp.sum(forces, axis=0) / total
-    turning = jnp.sum(cross(arms, forces)) / jnp.dot(masses, arms[:, 0] ** 2 + arms[:, 1] ** 2)
+    inertia = jnp.dot(masses, arms[:, 0] ** 2 + arms[:, 1] ** 2)      # 0 only for a body of one point
+    turning = jnp.where(inertia > 0.0, jnp.sum(cross(arms, forces)) / jnp.where(inertia > 0.0, inertia, 1.0), 0.0)
     return forces - masses[:, None] * (acceleration + spin_velocity(turning, arms))
