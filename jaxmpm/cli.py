@@ -206,7 +206,9 @@ def checked_simulation(arguments):
 
 def describe(sim) -> str:
     scene = sim.scene
-    return (f"{scene.name}: {sim.point_count} points, {sim.steps} steps of {sim.dt:.4g} s, "
+    subcycled = "".join(f", {block.name} in {block.substeps} substeps of each"
+                        for block in sim.structure.bodies if block.substeps > 1)
+    return (f"{scene.name}: {sim.point_count} points, {sim.steps} steps of {sim.dt:.4g} s{subcycled}, "
             f"{scene.numerics.dtype}")
 
 

@@ -158,6 +158,15 @@ def test_a_subcycled_block_carries_its_weight_as_stress():
         assert abs(stress[row, 1].mean() - expected) < 0.1 * abs(expected), (depth, stress[row, 1].mean(), expected)
 
 
+def test_the_check_command_says_how_a_body_is_subcycled(tmp_path, capsys):
+    from jaxmpm.cli import main
+
+    path = tmp_path / "wall.toml"
+    path.write_text(small_wall("free", young=30.0e9, substeps="auto").to_toml())
+    assert main(["check", str(path), "--quick"]) == 0
+    assert "wall in 61 substeps of each" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("change,words", [
     (dict(kinematics=Kinematics("rigid", substeps=4)), "only free bodies"),
     (dict(kinematics=Kinematics("free", substeps=0)), "substeps"),
