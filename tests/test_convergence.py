@@ -116,12 +116,26 @@ def test_a_subcycled_stiff_wall_moves_as_the_rigid_one_at_the_sands_step(stiff_e
     sim = Simulation(small_wall("free", young=30.0e9, substeps="auto"))
     wall = next(block for block in sim.structure.bodies if block.name == "wall")
     assert wall.substeps > 20 and sim.dt > 20 * fine_dt
-    top = np.asarray(sim.probes()["top"][:, 0])[:: sim.steps_per_output]
+    probes, state = sim.probes_and_final_state()
+    top = np.asarray(probes["top"][:, 0])[:: sim.steps_per_output]
     rigid = wall_top(dataclasses.replace(small_wall("rigid"), dt=sim.dt))
     moving = np.abs(reference) > 1e-3
     assert moving.sum() >= 3
     assert np.max(np.abs(top - rigid)[moving] / np.abs(rigid)[moving]) < 0.01
     assert np.max(np.abs(top - reference)[moving] / np.abs(reference)[moving]) < 0.04
+    assert sand_points_inside_the_wall(sim, state) == 0
+
+
+def sand_points_inside_the_wall(sim, state):
+    """Sand points inside the wall's rectangle, in the wall's own frame (its points' best-fit
+    rotation and translation since t = 0, Kabsch)."""
+    start, end = np.asarray(sim.initial_state().particles.x), np.asarray(state.particles.x)
+    sand, wall = slice(*sim.body_slices[0]), slice(*sim.body_slices[1])
+    before, after = start[wall] - start[wall].mean(0), end[wall] - end[wall].mean(0)
+    left, _, right = np.linalg.svd(before.T @ after)
+    rotation = (left @ right).T
+    back = (end[sand] - end[wall].mean(0)) @ rotation + start[wall].mean(0)
+    return int(np.sum((back[:, 0] > 0.5) & (back[:, 0] < 0.55) & (back[:, 1] > 0.1) & (back[:, 1] < 0.45)))
 
 
 def test_a_subcycled_block_carries_its_weight_as_stress():
