@@ -143,7 +143,10 @@ def test_a_subcycled_block_carries_its_weight_as_stress():
     # subcycled 4 times, damped to rest: the slab's support reaches it only through the contact
     # solve, and its balanced share (physics/subcycling.py) must load it as its weight does.
     # Statics: the mean vertical stress over a horizontal section at depth d below its top is
-    # -rho g d (the weight above, per unit width).
+    # -rho g d (the weight above, per unit width), and the slab carries the weight. Measured:
+    # within 0.06 % and 0.05 %. Before the substeps damped the deformation only
+    # (solver.deformation_damping), the damping ate momentum that the contact gave back: the
+    # slab carried 1.098 times the weight, and the stress was 9.9 % high at every depth.
     rho, height, width = 2400.0, 0.2, 0.1
     scene = Scene(
         name="block",
@@ -157,10 +160,14 @@ def test_a_subcycled_block_carries_its_weight_as_stress():
         duration=0.3,
         output_every=0.3,
         numerics=Numerics(shape="linear", transfer="apic", ppc=2, damping=0.3),
+        probes=(Probe("support", "contact_force", pair=("slab", "block")),),
     )
     sim = Simulation(scene)
     assert dict((block.name, block.substeps) for block in sim.structure.bodies)["block"] == 4
-    state = sim.final_state()
+    probes, state = sim.probes_and_final_state()
+    weight = rho * G * width * height
+    support = np.asarray(probes["support"])[:, 1]
+    assert np.mean(support[-2000:]) == pytest.approx(weight, rel=0.01)    # the force alternates step to step (README)
     points = slice(*sim.body_slices[1])
     x, stress = np.asarray(state.particles.x)[points], np.asarray(state.particles.stress_voigt)[points]
     assert np.all(np.isfinite(stress))
@@ -169,7 +176,7 @@ def test_a_subcycled_block_carries_its_weight_as_stress():
         row = np.abs(top - x[:, 1] - depth) < 0.003
         assert row.sum() >= 10
         expected = -rho * G * depth
-        assert abs(stress[row, 1].mean() - expected) < 0.1 * abs(expected), (depth, stress[row, 1].mean(), expected)
+        assert abs(stress[row, 1].mean() - expected) < 0.01 * abs(expected), (depth, stress[row, 1].mean(), expected)
 
 
 def test_the_check_command_says_how_a_body_is_subcycled(tmp_path, capsys):
