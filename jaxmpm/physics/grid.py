@@ -252,3 +252,10 @@ def apply_edge_conditions(velocity, mask, layout, boundaries):
         signs = jnp.asarray(mirror_signs(kind, axis), velocity.dtype)
         velocity = velocity.at[node_selector(axis, ghost)].set(signs * jnp.take(velocity, mirror, axis=axis - 3))
     return velocity
+
+
+def per_unit_mass(values, mass, floor):
+    """values / m_I on nodes with mass (..., 2), 0 on empty nodes: a node velocity from its
+    momentum, or an acceleration from a force; finite value and gradient (double where)."""
+    occupied = (mass > floor)[..., None]
+    return jnp.where(occupied, values / jnp.where(occupied, mass[..., None], 1.0), 0.0)

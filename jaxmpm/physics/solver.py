@@ -69,7 +69,8 @@ from jaxmpm.physics.bodies import (
 from jaxmpm.physics.contact import Interface, resolve_interfaces
 from jaxmpm.physics.subcycling import alone, correct, predict, put_back, subcycled_blocks
 from jaxmpm.physics.grid import (
-    GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, scatter_to_nodes, sum_over_stencil,
+    GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, per_unit_mass, scatter_to_nodes,
+    sum_over_stencil,
 )
 from jaxmpm.materials.base import points_update_voigt
 from jaxmpm.kernels.checkpoint_names import KEPT_GRID, KEPT_RATE
@@ -234,12 +235,6 @@ def point_radius(positions, structure):
     return jnp.maximum(positions[:, 0], 1e-3 * structure.point_spacing)
 
 
-def safe_velocity(momentum, mass, floor):
-    """p / m on nodes with mass, 0 on empty nodes; finite value and gradient (double where)."""
-    occupied = (mass > floor)[..., None]
-    return jnp.where(occupied, momentum / jnp.where(occupied, mass[..., None], 1.0), 0.0)
-
-
 def local_damping(force, velocity, coefficient):
     """Cundall's local damping: f - alpha |f| sign(v), componentwise at each node."""
     return force - coefficient * jnp.abs(force) * jnp.sign(velocity)
@@ -263,13 +258,13 @@ def update_grid_velocity(nodes, dt, damping, constrain, floor, damps="motion"):
     """Nodal velocities before and after M a = F (trial: before any contact), with the edge
     conditions applied; `damping` the local damping coefficient (None: undamped, no code),
     acting on the motion or on the deformation only (`Structure.damps`)."""
-    velocity_old = constrain(safe_velocity(nodes.momentum, nodes.mass, floor))
+    velocity_old = constrain(per_unit_mass(nodes.momentum, nodes.mass, floor))
     force = nodes.force
     if damping is not None and damps == "deformation":
         force = deformation_damping(nodes, velocity_old, damping)
     elif damping is not None:
         force = local_damping(force, velocity_old, damping)
-    velocity_new = constrain(safe_velocity(nodes.momentum + dt * force, nodes.mass, floor))
+    velocity_new = constrain(per_unit_mass(nodes.momentum + dt * force, nodes.mass, floor))
     return velocity_old, velocity_new
 
 
@@ -300,7 +295,7 @@ def remap_velocity(particles, stencil, field, structure, mass, constrain, floor)
     momentum = scatter_to_nodes(layout, stencil.base, point_momentum(particles, stencil), field, structure.fields,
                                 structure.derivatives)
     momentum = checkpoint_name(fold_ghosts(momentum, layout, structure.boundaries, scalars=0), KEPT_GRID)
-    return constrain(safe_velocity(momentum, mass, floor))
+    return constrain(per_unit_mass(momentum, mass, floor))
 
 
 def velocity_gradient(stencil, velocity, field, structure, positions):

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxmpm.physics.bodies import RigidStep, cross, rigid_body_frame, spin_velocity
-from jaxmpm.physics.grid import read_at_stencils
+from jaxmpm.physics.grid import per_unit_mass, read_at_stencils
 from jaxmpm.physics.state import State, counters_at_start
 
 
@@ -94,12 +94,6 @@ def advance_alone(step_alone, params, own, substeps, force=None):
         return step_alone(params, state, force)[0]
 
     return jax.lax.fori_loop(0, substeps, substep, State(own, {}, **counters_at_start())).particles
-
-
-def per_node(values, mass, floor):
-    """values / m_I on nodes with mass (..., 2), 0 on empty ones (finite value and gradient)."""
-    occupied = (mass > floor)[..., None]
-    return jnp.where(occupied, values / jnp.where(occupied, mass[..., None], 1.0), 0.0)
 
 
 class Prediction(NamedTuple):
@@ -158,7 +152,7 @@ def impulse_shares(structure, points, received, mass, floor):
     sum to sum_I J_I / dt."""
     stencil = structure.layout.stencil(points.x)
     support = stencil.weights.shape[1]
-    gathered = read_at_stencils(structure.layout, stencil.base, per_node(received, mass, floor)[None], support)
+    gathered = read_at_stencils(structure.layout, stencil.base, per_unit_mass(received, mass, floor)[None], support)
     return points.mass[:, None] * jnp.sum(stencil.weights[..., None] * gathered, axis=(1, 2)) / structure.dt
 
 
