@@ -1,7 +1,7 @@
 """Time-step and cell convergence of the headline quantities: the tables of docs/convergence.md.
 
     python benchmarks/convergence_study.py                 # every study (about 25 min on 2 cores)
-    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | subcycled | examples | cells | example_cells
+    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | subcycled | examples | cells | example_cells | relaxation
 
 Each run is a forward run of a scene at some numerics; the quantities are read at every
 output time and the largest relative change between two runs is reported.
@@ -26,6 +26,11 @@ output time and the largest relative change between two runs is reported.
   q* = q_h/4 + (q_h/4 - q_h/2) / (2^p - 1).
 - example_cells: the same for each example's headline quantities at their last time (about
   an hour on 2 cores: h/4 has 16 times the points and twice the steps of h each).
+- relaxation: each example at its shipped cfl with numerics.relaxation (kappa) = 10, 25, 100
+  and 1000, at its shipped cell h and at h/2: the headline quantities at the last time of the
+  dt study, and how far each lies from kappa = 1000 (almost pure FLIP). kappa is a numerical
+  parameter; this shows how much the answer depends on it and whether that shrinks with the
+  cell (about an hour on 2 cores, most of it the wall at h/2).
 A study, not a test: it prints markdown tables.
 """
 
@@ -419,8 +424,48 @@ def example_cells_study(names=("retaining_wall", "pile_driving", "column_collaps
                   flush=True)
 
 
+RELAXATIONS = (10.0, 25.0, 100.0, 1000.0)
+
+
+def relaxation_study(names=("retaining_wall", "pile_driving", "column_collapse"), factors=(1, 2)):
+    """Each example at its shipped cfl with each of RELAXATIONS, at cells h / factor."""
+    import jaxmpm
+
+    print("\n### Examples against the relaxation kappa (shipped cfl; the last output time of the dt study)\n")
+    print("| example | quantity | cell [m] | " + " | ".join(f"kappa = {k:g}" for k in RELAXATIONS)
+          + " | shipped kappa against 1000 | runs [s] |")
+    print("|---|---|---|" + "---|" * len(RELAXATIONS) + "---|---|")
+    durations = {"retaining_wall": 0.4, "pile_driving": 0.2, "column_collapse": 1.0}
+    for name in names:
+        base = jaxmpm.load_scene(ROOT / "examples" / f"{name}.toml").with_value("scene.duration", durations[name])
+        shipped = base.numerics.relaxation
+        for factor in factors:
+            cell = base.grid.cell / factor
+            found, seconds = {}, 0.0
+            for relaxation in RELAXATIONS:
+                scene = base.with_value("grid.cell", cell).with_value("numerics.relaxation", relaxation)
+                try:
+                    t, probes, steps, spent = run(scene)
+                except jaxmpm.SimulationError as error:
+                    print(f"<!-- {name} cell {cell:g} kappa {relaxation:g} failed: {error} -->", flush=True)
+                    continue
+                seconds += spent
+                found[relaxation] = {quantity: values[-1] for quantity, values in example_quantities(name, t, probes).items()}
+                print(f"<!-- {name} cell {cell:g} kappa {relaxation:g}: {steps} steps, {spent:.0f} s -->", flush=True)
+            if not found:
+                continue
+            for quantity in next(iter(found.values())):
+                values = [found[k][quantity] if k in found else math.nan for k in RELAXATIONS]
+                against = "–"
+                if shipped in found and RELAXATIONS[-1] in found:
+                    reference = found[RELAXATIONS[-1]][quantity]
+                    against = f"{100 * (found[shipped][quantity] - reference) / abs(reference):+.1f} %"
+                cells = " | ".join("failed" if math.isnan(value) else f"{value:.4g}" for value in values)
+                print(f"| {name} | {quantity} | {cell:g} | {cells} | {against} | {seconds:.0f} |", flush=True)
+
+
 STUDIES = {"wall": wall_study, "stiff": stiff_study, "subcycled": subcycled_study, "examples": examples_study, "cells": cells_study,
-           "example_cells": example_cells_study}
+           "example_cells": example_cells_study, "relaxation": relaxation_study}
 
 
 def main():
@@ -442,6 +487,9 @@ def main():
             continue
         if name == "example_cells":
             example_cells_study(tuple(arguments.examples or ("retaining_wall", "pile_driving", "column_collapse")))
+            continue
+        if name == "relaxation":
+            relaxation_study(tuple(arguments.examples or ("retaining_wall", "pile_driving", "column_collapse")))
             continue
         STUDIES[name]()
         sys.stdout.flush()
