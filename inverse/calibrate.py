@@ -35,7 +35,7 @@ import jax.numpy as jnp
 from inverse.compile_clock import CompileClock
 from inverse.experiments import experiments_from
 from inverse.fit import Fit, fit_from
-from inverse.numerical_error import REFINEMENTS, numerical_shifts, residuals_at
+from inverse.numerical_error import REFINEMENTS, numerical_shifts, refinement_refused, residuals_at
 from inverse.optimise import clock_in, on_devices, optimise, start_values_of
 from inverse.problem import OPTIMIZERS, build_problem, rough_misfit_warning
 from jaxmpm.errors import SceneError
@@ -70,15 +70,16 @@ def calibrate(
     jaxmpm Result, or the path of a CSV or HDF5 file. optimizer: "lm" (default), "lbfgs" or
     "adam" (see the module docstring). callback(iteration, progress) is called after every
     iteration (e.g. to log or to stop). numerical_check: refinements among "dt" (time step
-    halved) and "cell" (cell halved): for each, the fit reports how far its values would move
-    at those numerics (`Fit.numerical_shifts`, inverse/numerical_error.py), one forward run
-    of every experiment each.
+    halved), "cell" (cell halved) and "relaxation" (numerics.relaxation doubled): for each,
+    the fit reports how far its values would move at those numerics (`Fit.numerical_shifts`,
+    inverse/numerical_error.py), one forward run of every experiment each.
     """
     if fit is None:
         raise SceneError("fit is missing: name the parameters to fit, e.g. fit={'sand.friction_angle': (20, 45)}.")
     check_options(optimizer, max_iterations, checkpoint_every, gtol, ftol)
     refinements = checked_refinements(numerical_check)
     experiments = experiments_from(sim, observations)
+    check_refinements_apply(refinements, experiments)
     # optax's L-BFGS mixes int32 and int64 internally, which strict promotion would refuse.
     with jax.numpy_dtype_promotion("standard"), CompileClock() as timing:
         problem = build_problem(experiments, fit, optimizer, learning_rate)
@@ -111,6 +112,15 @@ def checked_refinements(numerical_check):
             raise SceneError(f"numerical_check = {numerical_check!r}: {refinement!r} is not one of "
                              f"{', '.join(map(repr, REFINEMENTS))}.")
     return refinements
+
+
+def check_refinements_apply(refinements, experiments):
+    """SceneError, before compiling, when a refinement cannot be made on an experiment's scene."""
+    for refinement in refinements:
+        for experiment in experiments:
+            reason = refinement_refused(experiment.sim.scene, refinement)
+            if reason:
+                raise SceneError(f"numerical_check = {refinement!r}: {reason}.")
 
 
 def check_options(optimizer, max_iterations, checkpoint_every, gtol, ftol):

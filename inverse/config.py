@@ -95,8 +95,9 @@ CALIBRATION_FILE = Section((
     Key("fit", "mapping", "the parameters to fit: \"dotted.name\" = [low, high] or { low, high, start }"),
     Key("optimizer", "table", "the optimiser", default={}, section=OPTIMIZER),
     Key("numerical_check", "strings", "refinements after the fit: 'dt' (time step halved), 'cell' (cell "
-        "halved); for each, how far the fitted values would move at those numerics, beside the noise "
-        "standard errors (one forward run of every experiment each)", default=[], choices=("dt", "cell")),
+        "halved), 'relaxation' (numerics.relaxation doubled); for each, how far the fitted values would move "
+        "at those numerics, beside the noise standard errors (one forward run of every experiment each)",
+        default=[], choices=("dt", "cell", "relaxation")),
 ))
 
 

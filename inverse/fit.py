@@ -215,7 +215,7 @@ class Fit:
     def numerical_error_lines(self) -> list[str]:
         """One line per refinement checked (`calibrate(numerical_check=...)`): how far each
         value would move at the refined numerics, in standard errors, and which dominates."""
-        labels = {"dt": "time step halved", "cell": "cell halved"}
+        labels = {"dt": "time step halved", "cell": "cell halved", "relaxation": "relaxation doubled"}
         lines = []
         for refinement, shift in self.numerical_shifts.items():
             errors = [self.stderr[n] for n in self.names]
@@ -224,7 +224,7 @@ class Fit:
                               for n, s, r in zip(self.names, shift, ratios))
             finite = [r for r in ratios if np.isfinite(r)]
             verdict = ("no parameter has a finite standard error to compare with" if not finite
-                       else "the discretisation dominates the noise" if max(finite) >= 1.0
+                       else "the numerics dominate the noise" if max(finite) >= 1.0
                        else "the noise dominates")
             lines.append(f"  numerical error ({labels[refinement]}): {moves}; {verdict}")
         return lines

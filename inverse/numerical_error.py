@@ -13,6 +13,12 @@ directions the data do not constrain left out, as in `fit.gauss_newton`). Each r
 costs one forward run of every experiment at the refined numerics and one compilation. When
 |delta| is well below the noise standard errors the numerics are fine enough for this fit;
 when it is comparable or larger, the discretisation, not the noise, limits the result.
+
+"relaxation" is not a refinement but a sensitivity: the relaxation kappa (numerics.relaxation,
+the time over which the points' own velocity fades into the grid's) doubled. kappa is a
+numerical parameter whose effect does not vanish with dt, and with rate-dependent sand it
+moves an example's headline result by up to a quarter (docs/convergence.md); the shift says
+how much of the fit rests on its choice.
 """
 
 from __future__ import annotations
@@ -24,13 +30,13 @@ import numpy as np
 
 from inverse.experiments import group_experiments, problem_arguments, problem_residuals
 
-REFINEMENTS = ("dt", "cell")
+REFINEMENTS = ("dt", "cell", "relaxation")
 
 
 def refined_scene(scene, refinement: str):
     """The scene with its time step halved ("dt": scene.dt, or scene.cfl when dt is not
-    given) or its cell halved ("cell": the time step follows from the cfl, and a given
-    scene.dt is halved with it)."""
+    given), its cell halved ("cell": the time step follows from the cfl, and a given
+    scene.dt is halved with it) or its relaxation doubled ("relaxation")."""
     if refinement == "dt":
         if scene.dt is not None:
             return scene.with_value("scene.dt", scene.dt / 2.0)
@@ -38,7 +44,18 @@ def refined_scene(scene, refinement: str):
     if refinement == "cell":
         scene = scene.with_value("grid.cell", scene.grid.cell / 2.0)
         return scene if scene.dt is None else scene.with_value("scene.dt", scene.dt / 2.0)
+    if refinement == "relaxation":
+        return scene.with_value("numerics.relaxation", 2.0 * scene.numerics.relaxation)
     raise ValueError(f"refinement {refinement!r} is not one of {REFINEMENTS}")
+
+
+def refinement_refused(scene, refinement: str) -> str | None:
+    """Why `refinement` cannot be checked on `scene` (a sentence's end), or None."""
+    if refinement == "relaxation" and (scene.numerics.transfer != "apic" or scene.numerics.relaxation <= 0.0):
+        return (f"the scene {scene.name!r} has no relaxation to double (numerics.transfer = "
+                f"{scene.numerics.transfer!r}, numerics.relaxation = {scene.numerics.relaxation:g}; it needs "
+                "'apic' and a relaxation > 0)")
+    return None
 
 
 def refined_experiments(experiments, refinement: str):
@@ -76,7 +93,7 @@ def parameter_shift(jacobian, difference):
 
 
 def numerical_shifts(experiments, space, values, residuals, jacobian, refinements):
-    """{refinement: (P,) shift of the fitted values} for each of `refinements` ("dt", "cell")."""
+    """{refinement: (P,) shift of the fitted values} for each of `refinements` (`REFINEMENTS`)."""
     shifts = {}
     for refinement in refinements:
         refined = residuals_at(refined_experiments(experiments, refinement), space, values)

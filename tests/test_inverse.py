@@ -434,6 +434,29 @@ def test_the_numerical_check_predicts_the_bias_of_a_coarse_fit():
         inverse.calibrate(coarse, measured, {"rod.young": (50.0, 200.0)}, progress=False, numerical_check="dx")
 
 
+def test_the_relaxation_check_predicts_the_bias_of_a_fit_made_at_another_relaxation():
+    # The relaxation kappa is a numerical parameter that biases a fit of viscoplastic sand
+    # (docs/convergence.md). A noise-free twin of the footing made at kappa = 20, fitted for
+    # the friction angle at kappa = 10: the check's predicted shift (kappa doubled) must be
+    # minus that bias (measured: bias -0.90 degrees, shift +0.88).
+    scene = jaxmpm.Scene.from_toml(TWIN).with_value("numerics.relaxation", 10.0)
+    fine = jaxmpm.Simulation(scene.with_value("numerics.relaxation", 20.0))
+    stride = int(round(0.01 / fine.dt))
+    probes = fine.probes()
+    measured = inverse.Observations.from_arrays(
+        {name: (fine.time[::stride], np.asarray(probes[name])[::stride][:, components], components)
+         for name, components in (("footing", [1]), ("surface", [0, 1]))})
+    fit = inverse.calibrate(jaxmpm.Simulation(scene), measured, {"sand.friction_angle": (15.0, 40.0)},
+                            starts=[{"sand.friction_angle": 27.0}], progress=False, numerical_check=["relaxation"])
+    bias = fit.params["sand.friction_angle"] - TRUTH["sand.friction_angle"]
+    assert abs(bias) > 0.2                                     # kappa does bias the fit ...
+    assert fit.numerical_shifts["relaxation"][0] == pytest.approx(-bias, rel=0.1)   # ... and the check sees it
+    assert "numerical error (relaxation doubled): sand.friction_angle" in fit.summary()
+    with pytest.raises(SceneError, match=r"numerical_check = 'relaxation': the scene 'footing_twin' has no relaxation"):
+        inverse.calibrate(twin_simulation(), measured, {"sand.friction_angle": (15.0, 40.0)}, progress=False,
+                          numerical_check="relaxation")
+
+
 def test_a_levenberg_marquardt_fit_ending_pinned_at_a_bound_reports_its_covariance():
     # The truth (poisson 0.3) lies above the allowed range: the fit drives the ratio to its
     # bound, where dtheta/dz underflows, so the held Jacobian cannot be mapped back and the
