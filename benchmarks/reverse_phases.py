@@ -57,7 +57,7 @@ def main():
     stencil = layout.stencil(particles.x)
     nodes = solver.particles_to_grid(particles, stencil, None, None, structure, params["scene"]["gravity"])
     v_old, v_new = solver.update_grid_velocity(nodes, dt, None, constrain, floor)
-    moved, _ = solver.grid_to_particles(particles, stencil, v_old, v_new, None, structure.memory, dt, layout)
+    moved = solver.grid_to_particles(particles, stencil, v_old, v_new, None, structure.memory, dt, layout)
     remapped = solver.remap_velocity(moved, stencil, None, structure, nodes.mass, constrain, floor)
     gradient = solver.velocity_gradient(stencil, remapped, None, structure, particles.x)
 
@@ -67,7 +67,7 @@ def main():
                               (particles, stencil.weights, stencil.gradients)),
         "update_grid": (lambda n: solver.update_grid_velocity(n, dt, None, constrain, floor), (nodes,)),
         "grid_to_particles": (lambda p, w, vo, vn: solver.grid_to_particles(p, stencil._replace(weights=w), vo, vn, None, structure.memory,
-                                                                         dt, layout)[0],
+                                                                         dt, layout),
                               (particles, stencil.weights, v_old, v_new)),
         "remap_velocity": (lambda p, w, m: solver.remap_velocity(p, stencil._replace(weights=w), None, structure, m, constrain, floor),
                            (moved, stencil.weights, nodes.mass)),

@@ -275,8 +275,7 @@ def grid_to_particles(particles, stencil, velocity_old, velocity_new, field, mem
     own FLIP update, the rest is the grid's: v_p <- sum N_I v_I + memory (v_p + sum N_I dv_I -
     sum N_I v_I). With transfer = "flip", memory = flip (per step); with "apic", memory =
     exp(-dt / tau) (see `transfer_memory`, `body_memory`), and C_p is set with the velocity
-    gradient in `make_step`. Returns the points and the grid's velocity at them, sum N_I v_I.
-    derivatives: see `Structure`.
+    gradient in `make_step`. derivatives: see `Structure`.
     """
     support = stencil.weights.shape[1]
     blend = bool(np.any(np.asarray(memory) > 0.0))     # static: without memory only v_I is gathered
@@ -287,12 +286,11 @@ def grid_to_particles(particles, stencil, velocity_old, velocity_new, field, mem
     velocity = grid_velocity
     if blend:
         velocity = grid_velocity + memory * (particles.v + at_points[:, 2:] - grid_velocity)
-    return particles.replace(x=particles.x + dt * grid_velocity, v=velocity), grid_velocity
+    return particles.replace(x=particles.x + dt * grid_velocity, v=velocity)
 
 
 def remap_velocity(particles, stencil, field, structure, mass, constrain, floor):
-    """MUSL: nodal velocity sum_p m_p v_p N_I / m_I of each field from the updated points (for
-    relaxing points, the grid's velocity at them: `strain_velocity`)."""
+    """MUSL: nodal velocity sum_p m_p v_p N_I / m_I of each field from the updated points."""
     layout = structure.layout
     momentum = scatter_to_nodes(layout, stencil.base, point_momentum(particles, stencil), field, structure.fields,
                                 structure.derivatives)
@@ -446,36 +444,6 @@ def body_memory(memory, law, transfer, relaxation):
     return memory
 
 
-def relaxing_points(structure):
-    """The points whose velocity relaxes into the grid's (APIC with a relaxation: free bodies
-    on the scene's memory, i.e. soil that yields): a static (N, 1) array, 1.0 for each of
-    them and 0.0 for the others, or the float 1.0 when every point does; None when none does."""
-    if structure.transfer != "apic" or structure.memory <= 0.0:
-        return None
-    relaxing = [block.kinematics == "free" and block.memory in (None, structure.memory) for block in structure.bodies]
-    if not any(relaxing):
-        return None
-    if all(relaxing):
-        return 1.0
-    return np.concatenate([np.full((block.stop - block.start, 1), float(flag))
-                           for block, flag in zip(structure.bodies, relaxing)])
-
-
-def strain_velocity(particles, grid_velocity, relaxing):
-    """The points' velocity the MUSL re-map takes for the strain rate: v_p, except that a
-    relaxing point takes the grid's velocity at it, sum N_I v_I (`grid_to_particles`).
-
-    A relaxing point's own velocity carries momentum from step to step; it also carries the
-    FLIP noise the relaxation lets live over tau. Re-mapped into the strain rate, that noise
-    drove plastic flow whose amount depended on tau itself: the examples' headline results
-    moved by up to a third between relaxation 10 and 1000 (docs/convergence.md). The grid's
-    velocity, the solution of this step's momentum balance and contacts, holds none of it."""
-    if relaxing is None:
-        return particles
-    return particles.replace(v=grid_velocity if np.ndim(relaxing) == 0 else
-                             jnp.where(relaxing > 0.0, grid_velocity, particles.v))
-
-
 def point_memory(structure):
     """Each point's transfer memory: the scene's float when every body keeps it, else a static
     (N, 1) array of each body's (`BodyBlock.memory`)."""
@@ -490,7 +458,6 @@ def make_step(structure: Structure):
     """The pure step function of a scene: step(params, state) -> (state, diagnostics)."""
     layout, dt = structure.layout, structure.dt
     memory = point_memory(structure)
-    relaxing = relaxing_points(structure)
     fields = None
     if structure.fields > 1:   # each point's velocity field, a compile-time constant
         fields = np.concatenate([np.full(b.stop - b.start, b.field, np.int32) for b in structure.bodies])
@@ -536,7 +503,7 @@ def make_step(structure: Structure):
         ended = correct(steps_alone, params, structure, subcycled, prediction, motions,
                         received_impulses(structure, impulses), nodes.mass, floor)
         start = particles.x
-        particles, grid_velocity = jax.named_call(grid_to_particles, name="grid_to_particles")(
+        particles = jax.named_call(grid_to_particles, name="grid_to_particles")(
             particles, stencil, velocity_old, velocity_new, field, memory, dt, layout, structure.derivatives
         )
         state, reactions = move_kinematic_bodies(state.replace(particles=particles), start, structure, motions, impulses,
@@ -545,8 +512,7 @@ def make_step(structure: Structure):
         particles = state.particles
         if structure.update == "musl":
             velocity_new = jax.named_call(remap_velocity, name="remap_velocity")(
-                strain_velocity(particles, grid_velocity, relaxing), stencil, field, structure, nodes.mass, constrain,
-                floor
+                particles, stencil, field, structure, nodes.mass, constrain, floor
             )
         gradient = velocity_gradient(stencil, velocity_new, field, structure, start)
         if structure.transfer == "apic":   # C_p = the in-plane block of L_p, from its entries (no pads in reverse mode)
