@@ -236,7 +236,8 @@ class Grid(NamedTuple):
 
 def rigid_residual(motion, grid, frictions, structure, frames, positions, normals):
     """Momentum balance of every rigid body, (3 K,): M (V - V*) - sum J and
-    J_c (omega - w*) - sum r x J, with `motion` (3 K,) the bodies' (V_x, V_y, omega) in
+    J_c (omega - w*) - sum r x J (in axisymmetry only the axial row takes the impulses: the
+    body, a ring, keeps V_r = V*_r and omega = w*), with `motion` (3 K,) the bodies' (V_x, V_y, omega) in
     block order, `frames` their RigidStep before the solve and `normals` the contact normal
     of each of `rigid_interfaces` (None for a bonded one; they do not depend on the motion)."""
     blocks = answering_blocks(structure)
@@ -254,6 +255,9 @@ def rigid_residual(motion, grid, frictions, structure, frames, positions, normal
         impulse = received[block.name]
         linear = frame.mass * (motion[3 * index:3 * index + 2] - frame.velocity) - jnp.sum(impulse, axis=(0, 1))
         angular = frame.inertia * (motion[3 * index + 2] - frame.spin) - jnp.sum(cross(positions - frame.centre, impulse))
+        if structure.axisymmetric:      # a ring moves along the axis only: no impulse moves it radially or turns it
+            linear = linear.at[0].set(frame.mass * (motion[3 * index] - frame.velocity[0]))
+            angular = frame.inertia * (motion[3 * index + 2] - frame.spin)
         balances.append(jnp.concatenate([linear, angular[None]]))
     return jnp.concatenate(balances)
 

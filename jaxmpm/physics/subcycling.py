@@ -11,14 +11,16 @@ step of the scene:
   contact  its interfaces are resolved once per scene step with the body moving as one, as a
            rigid body's are (`bodies.solve_rigid_motions`): V, w solve M (V - V*) = sum_I J_I,
            J_c (w - w*) = sum_I (x_I - c) x J_I, and the free fields end the step moving with
-           V + w e_z x (x_I - c) where they meet it
+           V + w e_z x (x_I - c) where they meet it (in axisymmetry only along the axis: a
+           ring keeps its predicted radial and turning motion)
   correct  its n substeps again from the start of the step: its points first take the change
            (V - V*) + (w - w*) e_z x r_p as one body, and at every substep each point carries
            its share of the impulses less that rigid part,
                f_p = m_p sum_I N_I(x_p) J_I / (m_I dt) - m_p (a + alpha e_z x r_p),
            (a, alpha) the uniform and rotational acceleration of the shares themselves, so the
            f_p have no resultant and no moment: they only strain the body, as the contact load
-           and the inertia of its motion do (its bending under the earth pressure).
+           and the inertia of its motion do (its bending under the earth pressure). In
+           axisymmetry only the axial part a_z is taken off: the radial shares squeeze the ring.
 
 So the body meets its contacts exactly as a rigid body of its shape does (its stiff limit),
 and carries the stresses of its weight, its motion and its contact loads. The contact does not
@@ -140,7 +142,7 @@ def correct(steps_alone, params, structure, blocks, prediction, motions, receive
         arm = points.x - motion.centre
         taken = motion.velocity - guess.velocity + spin_velocity(motion.spin - guess.spin, arm)
         shares = balanced(impulse_shares(structure, points, received[block.field], mass[block.field], floor), points.mass,
-                          arm)
+                          arm, structure.axisymmetric)
         ended[block.name] = advance_alone(steps_alone[block.name], params, points.replace(v=points.v + taken),
                                           block.substeps, shares)
     return ended
@@ -156,12 +158,15 @@ def impulse_shares(structure, points, received, mass, floor):
     return points.mass[:, None] * jnp.sum(stencil.weights[..., None] * gathered, axis=(1, 2)) / structure.dt
 
 
-def balanced(forces, masses, arms):
+def balanced(forces, masses, arms, axial_only=False):
     """forces (n, 2) less m_p (a + alpha e_z x r_p), the uniform and rotational acceleration
-    they give the points (masses (n,), arms r_p (n, 2) from any centre): no resultant, no moment."""
+    they give the points (masses (n,), arms r_p (n, 2) from any centre): no resultant, no moment.
+    axial_only (axisymmetry, where the body moves as one along the axis only): less m_p a_z e_z."""
     total = jnp.sum(masses)
-    arms = arms - jnp.dot(masses, arms) / total
     acceleration = jnp.sum(forces, axis=0) / total
+    if axial_only:
+        return forces - masses[:, None] * acceleration.at[0].set(0.0)
+    arms = arms - jnp.dot(masses, arms) / total
     inertia = jnp.dot(masses, arms[:, 0] ** 2 + arms[:, 1] ** 2)      # 0 only for a body of one point
     turning = jnp.where(inertia > 0.0, jnp.sum(cross(arms, forces)) / jnp.where(inertia > 0.0, inertia, 1.0), 0.0)
     return forces - masses[:, None] * (acceleration + spin_velocity(turning, arms))

@@ -173,7 +173,8 @@ def check_kinematics(key: str, kinematics: Kinematics):
 
 def check_axisymmetric(scene):
     """In axisymmetry x is the radius: the grid starts on the axis, whose edge holds the
-    radial velocity, gravity is axial, and no body turns in the (r, z) plane."""
+    radial velocity, gravity is axial, and a rigid body (a ring) starts with no radial
+    velocity: it moves along the axis only."""
     grid = scene.grid
     if grid.origin[0] != 0.0:
         raise SceneError(
@@ -187,16 +188,10 @@ def check_axisymmetric(scene):
     if scene.gravity[0] != 0.0:
         raise SceneError(f"scene.gravity = {list(scene.gravity)}: in axisymmetry gravity is axial, so gravity[0] must be 0.")
     for index, body in enumerate(scene.bodies):
-        if body.kinematics.subcycled:
+        if body.kinematics.type == "rigid" and body.velocity[0] != 0.0:
             raise SceneError(
-                f"bodies[{index}].kinematics.substeps = {body.kinematics.substeps!r} is not available in axisymmetry "
-                "(a subcycled body answers its contacts as a rigid body, which cannot turn in the (r, z) plane): "
-                "remove it, and the body sets the step."
-            )
-        if body.kinematics.type == "rigid":
-            raise SceneError(
-                f"bodies[{index}].kinematics.type = 'rigid' is not available in axisymmetry (a ring cannot turn in "
-                "the (r, z) plane): use 'prescribed', or a stiff free body."
+                f"bodies[{index}].velocity = {list(body.velocity)}: in axisymmetry a rigid body (a ring) moves along "
+                "the axis only, so velocity[0] must be 0."
             )
 
 
