@@ -93,7 +93,7 @@ REGION = Section((
 KINEMATICS_TABLE = Section(
     (Key("type", "str", "'free' (deformable, its material's stress update), 'prescribed' (moved at a "
          "given velocity, no stress update) or 'rigid' (one body under gravity and contact forces; "
-         "not in axisymmetry)", default="free", choices=KINEMATICS),),
+         "in axisymmetry it moves along the axis only)", default="free", choices=KINEMATICS),),
     "how the body moves",
     variant_key="type",
     variants={"free": (
@@ -101,8 +101,8 @@ KINEMATICS_TABLE = Section(
             "structure); 'auto': the fewest that keep it within scene.cfl. A subcycled body does not set the "
             "scene's step. Its contacts are resolved once per scene step, and it takes their impulse as a whole "
             "(with its mass and moment of inertia, as a rigid body): its substeps carry its deformation under its "
-            "weight and inertia, not the local deformation a contact load would cause. Not in axisymmetry; "
-            "absent: 1", default=None, low=1, low_inclusive=True, words=("auto",)),
+            "weight and inertia, not the local deformation a contact load would cause. In axisymmetry it "
+            "moves as one along the axis only; absent: 1", default=None, low=1, low_inclusive=True, words=("auto",)),
     ), "prescribed": (
         Key("velocity", "vec2_or_points", "the prescribed velocity [vx, vy], or one [vx, vy] per entry of "
             "time (linear in between, held after the last); a parameter: params['bodies'][NAME]['velocity']",
