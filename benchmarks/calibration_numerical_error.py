@@ -1,6 +1,6 @@
 """The numerical error of a calibration, measured on the wall twin: docs/calibration.md's table.
 
-    python benchmarks/calibration_numerical_error.py [--relaxation 0 10]
+    python benchmarks/calibration_numerical_error.py [--relaxation 0 10] [--refinement dt|relaxation]
 
 The twin's observations (wall-top displacement, thrust; examples/calibrate_wall_scene.toml)
 are made at fine numerics, the time step halved (cfl 0.2), noise-free, at the true values
@@ -8,7 +8,9 @@ are made at fine numerics, the time step halved (cfl 0.2), noise-free, at the tr
 calibration study's start, with `numerical_check=("dt",)`. The fitted values' bias (fit -
 truth) is then the numerical error a user inherits, and the check's predicted shift (what the
 values would do at the refined numerics) should be minus that bias. A second fit to the same
-observations with 2 % noise gives the noise standard errors to compare with. A study, not a
+observations with 2 % noise gives the noise standard errors to compare with. With
+`--refinement relaxation` the observations are made at the relaxation doubled instead (the
+time step as the fit's), and the check is `numerical_check=("relaxation",)`. A study, not a
 test: about 10 minutes per relaxation on 2 cores.
 """
 
@@ -30,22 +32,24 @@ jax.config.update("jax_enable_x64", True)
 import inverse  # noqa: E402
 import jaxmpm  # noqa: E402
 from calibration_study import WALL_FIT, WALL_SCENE, WALL_START, WALL_TRUTH, wall_observations  # noqa: E402
+from inverse.numerical_error import refined_scene  # noqa: E402
 
 
-def study(relaxation):
+def study(relaxation, refinement="dt"):
     scene = jaxmpm.load_scene(WALL_SCENE).with_value("numerics.relaxation", relaxation)
     coarse = jaxmpm.Simulation(scene)
-    fine = jaxmpm.Simulation(scene.with_value("scene.cfl", scene.cfl / 2.0))
+    fine = jaxmpm.Simulation(refined_scene(scene, refinement))
+    made = f"{fine.steps} steps at cfl {scene.cfl / 2:g}" if refinement == "dt" else f"relaxation {2 * relaxation:g}"
     print(f"\n### relaxation = {relaxation:g}: {coarse.point_count} points, {coarse.steps} steps at cfl "
-          f"{scene.cfl:g} (observations from {fine.steps} at cfl {scene.cfl / 2:g})\n")
-    print("| parameter | truth | fit at cfl 0.4 | bias | predicted shift at half dt | "
-          "bias / noise standard error (2 %) |")
+          f"{scene.cfl:g} (observations made at {made})\n")
+    print(f"| parameter | truth | fit at cfl {scene.cfl:g}, relaxation {relaxation:g} | bias | predicted shift "
+          f"({refinement} refined) | bias / noise standard error (2 %) |")
     print("|---|---|---|---|---|---|")
     started = time.perf_counter()
     fit = inverse.calibrate(coarse, wall_observations(fine, 0.0), WALL_FIT, starts=[WALL_START],
-                            progress=False, numerical_check=("dt",))
+                            progress=False, numerical_check=(refinement,))
     noisy = inverse.calibrate(coarse, wall_observations(fine, 0.02), WALL_FIT, starts=[WALL_START], progress=False)
-    shift = fit.numerical_shifts["dt"]
+    shift = fit.numerical_shifts[refinement]
     for index, name in enumerate(fit.names):
         bias = fit.params[name] - WALL_TRUTH[name]
         print(f"| {name} | {WALL_TRUTH[name]:g} | {fit.params[name]:.4g} | {bias:+.3g} | {shift[index]:+.3g} | "
@@ -56,10 +60,12 @@ def study(relaxation):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--relaxation", type=float, nargs="+", default=[0.0, 10.0])
+    parser.add_argument("--refinement", choices=("dt", "relaxation"), default="dt",
+                        help="what the observations are made finer in (default: dt)")
     arguments = parser.parse_args()
     print(f"jaxmpm calibration numerical error, {time.strftime('%Y-%m-%d')}, {jax.devices()[0].device_kind}")
     for relaxation in arguments.relaxation:
-        study(relaxation)
+        study(relaxation, arguments.refinement)
         sys.stdout.flush()
 
 

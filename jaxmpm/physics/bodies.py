@@ -236,10 +236,11 @@ class Grid(NamedTuple):
 
 def rigid_residual(motion, grid, frictions, structure, frames, positions, normals):
     """Momentum balance of every rigid body, (3 K,): M (V - V*) - sum J and
-    J_c (omega - w*) - sum r x J (in axisymmetry only the axial row takes the impulses: the
-    body, a ring, keeps V_r = V*_r and omega = w*), with `motion` (3 K,) the bodies' (V_x, V_y, omega) in
+    J_c (omega - w*) - sum r x J, with `motion` (3 K,) the bodies' (V_x, V_y, omega) in
     block order, `frames` their RigidStep before the solve and `normals` the contact normal
-    of each of `rigid_interfaces` (None for a bonded one; they do not depend on the motion)."""
+    of each of `rigid_interfaces` (None for a bonded one; they do not depend on the motion).
+    In axisymmetry only the axial row takes the impulses: the body, a ring, keeps V_r = V*_r
+    and omega = w*."""
     blocks = answering_blocks(structure)
     velocity = grid.velocity
     for index, block in enumerate(blocks):
