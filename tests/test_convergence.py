@@ -210,10 +210,13 @@ KINEMATICS_OF = {"free": Kinematics("free"), "prescribed": Kinematics("prescribe
                  "rigid": Kinematics("rigid"), "subcycled": Kinematics("free", substeps=3)}
 
 
-@pytest.mark.parametrize("kinds,paired", [
-    (kinds, paired) for kinds in itertools.combinations_with_replacement(BODY_KINDS, 2) for paired in (False, True)
+@pytest.mark.parametrize("kinds,paired,geometry", [
+    (kinds, paired, "plane_strain") for kinds in itertools.combinations_with_replacement(BODY_KINDS, 2)
+    for paired in (False, True)
+] + [  # in axisymmetry, a sample of the pairs with a body that moves as one along the axis
+    (kinds, paired, "axisymmetric") for kinds in (("rigid", "subcycled"), ("prescribed", "rigid")) for paired in (False, True)
 ])
-def test_every_pair_of_body_kinds_runs_or_is_refused(kinds, paired):
+def test_every_pair_of_body_kinds_runs_or_is_refused(kinds, paired, geometry):
     # A sand layer and two blocks above it of the given kinds, in contact with the sand or
     # bonded to it (no pair); before bodies.py a prescribed and a rigid body in one scene
     # failed while tracing. Three steps run and stay finite.
@@ -224,6 +227,7 @@ def test_every_pair_of_body_kinds_runs_or_is_refused(kinds, paired):
     )
     scene = Scene(
         name="kinds",
+        geometry=geometry,
         grid=Grid(size=(0.7, 0.4), cell=0.05, boundaries=Boundaries("slip", "slip", "fixed", "free")),
         materials={"sand": LinearElastic(density=1800.0, young=5e6, poisson=0.3),
                    "steel": LinearElastic(density=7800.0, young=2e8, poisson=0.3)},
