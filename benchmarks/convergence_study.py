@@ -272,21 +272,38 @@ def subcycled_study():
                 print(f"| {label}, E = {young / 1e9:g} GPa | {cfl} | {1e6 * t[1]:.1f} | {substeps} | {steps} | {top[0]:.2f} | "
                       f"{top[1]:.2f} | {change} | {seconds:.0f} |")
     print("\n### Dropped pile subcycled (E = 30 GPa): sinking [mm] at 0.05 / 0.07 / 0.1 s\n")
-    print("| pile | dt [µs] | substeps | steps | 0.05 s | 0.07 s | 0.1 s | against brute force | run [s] |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| geometry | pile | dt [µs] | substeps | steps | 0.05 s | 0.07 s | 0.1 s | against brute force | run [s] |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     times = (0.05, 0.07, 0.1)
-    t_ref, reference, steps, seconds = run(jaxmpm.Scene.from_toml(PILE_SCENE.format(kinematics="free")))
-    sink = -1e3 * at_times(t_ref, reference["sink"][:, 1], times)
-    print(f"| elastic, brute force | {1e6 * t_ref[1]:.2f} | 1 | {steps} | " + " | ".join(f"{v:.2f}" for v in sink)
-          + f" | | {seconds:.0f} |")
-    for label, scene in (("subcycled", jaxmpm.Scene.from_toml(PILE_SCENE.format(kinematics="free")).with_value(
-            "bodies.pile.kinematics.substeps", "auto")), ("rigid", jaxmpm.Scene.from_toml(PILE_SCENE.format(kinematics="rigid")))):
-        substeps = {b.name: b.substeps for b in jaxmpm.Simulation(scene).structure.bodies}["pile"]
-        t, probes, steps, seconds = run(scene)
-        sink = -1e3 * at_times(t, probes["sink"][:, 1], times)
-        change = most_apart(t, probes["sink"][:, 1], t_ref, reference["sink"][:, 1], 0.01)
-        print(f"| {label} | {1e6 * t[1]:.1f} | {substeps} | {steps} | " + " | ".join(f"{v:.2f}" for v in sink)
-              + f" | {change} | {seconds:.0f} |")
+    for axisymmetric in (False, True):
+        geometry = "axisymmetric, on the axis" if axisymmetric else "plane strain"
+        t_ref, reference, steps, seconds = run(dropped_pile("free", axisymmetric))
+        sink = -1e3 * at_times(t_ref, reference["sink"][:, 1], times)
+        print(f"| {geometry} | elastic, brute force | {1e6 * t_ref[1]:.2f} | 1 | {steps} | "
+              + " | ".join(f"{v:.2f}" for v in sink) + f" | | {seconds:.0f} |")
+        for label, scene in (("subcycled", dropped_pile("free", axisymmetric).with_value(
+                "bodies.pile.kinematics.substeps", "auto")), ("rigid", dropped_pile("rigid", axisymmetric))):
+            substeps = {b.name: b.substeps for b in jaxmpm.Simulation(scene).structure.bodies}["pile"]
+            t, probes, steps, seconds = run(scene)
+            sink = -1e3 * at_times(t, probes["sink"][:, 1], times)
+            change = most_apart(t, probes["sink"][:, 1], t_ref, reference["sink"][:, 1], 0.01)
+            print(f"| {geometry} | {label} | {1e6 * t[1]:.1f} | {substeps} | {steps} | "
+                  + " | ".join(f"{v:.2f}" for v in sink) + f" | {change} | {seconds:.0f} |", flush=True)
+
+
+def dropped_pile(kinematics, axisymmetric=False):
+    """PILE_SCENE with the pile's kinematics type; axisymmetric: the same sand 0.4 m wide and a
+    pile of radius 0.04 m on the axis."""
+    import jaxmpm
+
+    text = PILE_SCENE.format(kinematics=kinematics)
+    if axisymmetric:
+        for old, new in (('name = "dropped_pile"', 'name = "dropped_pile"\ngeometry = "axisymmetric"'),
+                         ("size = [0.6, 0.7]", "size = [0.4, 0.7]"),
+                         ("[[0.0, 0.0], [0.6, 0.3]]", "[[0.0, 0.0], [0.4, 0.3]]"),
+                         ("[[0.28, 0.32], [0.32, 0.62]]", "[[0.0, 0.32], [0.04, 0.62]]")):
+            text = text.replace(old, new)
+    return jaxmpm.Scene.from_toml(text)
 
 
 def pile_force(t, probes):
