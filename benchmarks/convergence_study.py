@@ -281,14 +281,16 @@ def subcycled_study():
         sink = -1e3 * at_times(t_ref, reference["sink"][:, 1], times)
         print(f"| {geometry} | elastic, brute force | {1e6 * t_ref[1]:.2f} | 1 | {steps} | "
               + " | ".join(f"{v:.2f}" for v in sink) + f" | | {seconds:.0f} |")
-        for label, scene in (("subcycled", dropped_pile("free", axisymmetric).with_value(
+        for label, base in (("subcycled", dropped_pile("free", axisymmetric).with_value(
                 "bodies.pile.kinematics.substeps", "auto")), ("rigid", dropped_pile("rigid", axisymmetric))):
-            substeps = {b.name: b.substeps for b in jaxmpm.Simulation(scene).structure.bodies}["pile"]
-            t, probes, steps, seconds = run(scene)
-            sink = -1e3 * at_times(t, probes["sink"][:, 1], times)
-            change = most_apart(t, probes["sink"][:, 1], t_ref, reference["sink"][:, 1], 0.01)
-            print(f"| {geometry} | {label} | {1e6 * t[1]:.1f} | {substeps} | {steps} | "
-                  + " | ".join(f"{v:.2f}" for v in sink) + f" | {change} | {seconds:.0f} |", flush=True)
+            for cfl in (0.4, 0.2):
+                scene = base.with_value("scene.cfl", cfl)
+                substeps = {b.name: b.substeps for b in jaxmpm.Simulation(scene).structure.bodies}["pile"]
+                t, probes, steps, seconds = run(scene)
+                sink = -1e3 * at_times(t, probes["sink"][:, 1], times)
+                change = most_apart(t, probes["sink"][:, 1], t_ref, reference["sink"][:, 1], 0.01)
+                print(f"| {geometry} | {label}, cfl {cfl} | {1e6 * t[1]:.1f} | {substeps} | {steps} | "
+                      + " | ".join(f"{v:.2f}" for v in sink) + f" | {change} | {seconds:.0f} |", flush=True)
 
 
 def dropped_pile(kinematics, axisymmetric=False):
