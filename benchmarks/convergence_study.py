@@ -19,9 +19,10 @@ output time and the largest relative change between two runs is reported.
 - examples: the headline quantities of examples/retaining_wall.toml (wall top, rotation;
   first 0.4 s), pile_driving.toml (head force at 5 and 10 cm, heave; first 0.2 s) and
   column_collapse.toml (front, centre of mass; the whole 1 s) at the shipped cfl and at half.
-- subcycled: the same two elastic walls and the elastic pile subcycled at the sand's step
-  (`kinematics.substeps = "auto"`), against each as an ordinary free body at its own step
-  (brute force) and against the rigid body at the sand's step; with run times.
+- subcycled: the same two elastic walls and the elastic pile (in plane strain, and in
+  axisymmetry on the axis) subcycled at the sand's step (`kinematics.substeps = "auto"`),
+  against each as an ordinary free body at its own step (brute force) and against the rigid
+  body at the sand's step; with run times.
 - cells: the small wall at h, h/2, h/4 (ppc 2) and at h with ppc 3: observed order and the
   Richardson-extrapolated value p = log2((q_h - q_h/2) / (q_h/2 - q_h/4)),
   q* = q_h/4 + (q_h/4 - q_h/2) / (2^p - 1).
