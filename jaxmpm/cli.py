@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import math
 import os
 import signal
 import sys
@@ -209,7 +210,18 @@ def describe(sim) -> str:
     subcycled = "".join(f", {block.name} in {block.substeps} substeps of each"
                         for block in sim.structure.bodies if block.substeps > 1)
     return (f"{scene.name}: {sim.point_count} points, {sim.steps} steps of {sim.dt:.4g} s{subcycled}, "
-            f"{scene.numerics.dtype}")
+            f"{scene.numerics.dtype}{describe_relaxation(scene)}")
+
+
+def describe_relaxation(scene) -> str:
+    """', relaxation 25 (tau = 5.1 ms)' for a relaxed APIC transfer, '' otherwise: a numerical
+    choice that moves results (docs/convergence.md), so said with them."""
+    from jaxmpm.running.simulation import slowest_crossing_time
+
+    relaxation, crossing = scene.numerics.relaxation, slowest_crossing_time(scene)
+    if scene.numerics.transfer != "apic" or relaxation <= 0.0 or not math.isfinite(crossing):
+        return ""
+    return f", relaxation {relaxation:g} (tau = {1e3 * relaxation * crossing:.3g} ms)"
 
 
 def print_notes(scene):

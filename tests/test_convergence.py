@@ -8,6 +8,7 @@ density as its stiffness grows, so the two must move alike once the elastic one 
 
 import dataclasses
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -179,13 +180,17 @@ def test_a_subcycled_block_carries_its_weight_as_stress():
         assert abs(stress[row, 1].mean() - expected) < 0.01 * abs(expected), (depth, stress[row, 1].mean(), expected)
 
 
-def test_the_check_command_says_how_a_body_is_subcycled(tmp_path, capsys):
+def test_the_check_command_says_how_a_body_is_subcycled_and_the_relaxation_time(tmp_path, capsys):
     from jaxmpm.cli import main
 
     path = tmp_path / "wall.toml"
     path.write_text(small_wall("free", young=30.0e9, substeps="auto").to_toml())
     assert main(["check", str(path), "--quick"]) == 0
-    assert "wall in 61 substeps of each" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "wall in 61 substeps of each" in out
+    # tau = kappa h / c_p of the sand (the slowest free body), c_p^2 = E (1 - nu) / ((1 + nu)(1 - 2 nu) rho)
+    c_p = math.sqrt(5e6 * 0.7 / (1.3 * 0.4 * 1800.0))
+    assert f"relaxation 10 (tau = {1e3 * 10.0 * 0.025 / c_p:.3g} ms)" in out
 
 
 @pytest.mark.parametrize("change,words", [
