@@ -408,6 +408,7 @@ def test_a_rigid_body_with_a_radial_velocity_is_refused_in_axisymmetry():
     with pytest.raises(SceneError, match=r"bodies\[0\].velocity = \[0.5, 0.0\]: in axisymmetry a rigid body"):
         dataclasses.replace(scene, bodies=(body,))
 
+
 def test_gradients_through_an_axisymmetric_rigid_pile_match_finite_differences():
     # The held radial and turning rows of the rigid solve are part of its implicit-function
     # derivative: d(sinking)/d(steel density, sand friction angle) against central differences.
