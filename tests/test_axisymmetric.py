@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import jaxmpm
+from tests.scenes import reverse_mode_against_central_differences
 from tests.test_elastic_validation import cell_means
 from jaxmpm import (
     Body, Boundaries, Grid, Kinematics, LinearElastic, Numerics, Probe, Rectangle, Scene, SceneError,
@@ -415,15 +416,10 @@ def test_gradients_through_an_axisymmetric_rigid_pile_match_finite_differences()
     scene = jaxmpm.Scene.from_toml(AXISYMMETRIC_PILE.format(kinematics='{ type = "rigid" }'))
     sim = jaxmpm.Simulation(scene.with_value("scene.duration", 0.02))
 
-    def sinking(values):
-        params = jaxmpm.with_values(sim.params, {"steel.density": values[0], "sand.friction_angle": values[1]})
+    def sinking(params):
         return sim.probes(params)["sink"][-1, 1]
 
-    point = jnp.asarray([7850.0, 30.0])
-    gradient = np.asarray(jax.jacfwd(sinking)(point))
-    for index in range(2):
-        step = 1e-6 * float(point[index])
-        shift = jnp.zeros(2).at[index].set(step)
-        reference = (float(sinking(point + shift)) - float(sinking(point - shift))) / (2 * step)
-        assert np.isfinite(gradient[index]) and gradient[index] != 0.0
-        assert gradient[index] == pytest.approx(reference, rel=1e-4)
+    reverse_mode_against_central_differences(sim, sinking, [
+        ("steel.density", 7850.0, ("materials", "steel", "density")),
+        ("sand.friction_angle", 30.0, ("materials", "sand", "friction_angle")),
+    ], rel=1e-4)
