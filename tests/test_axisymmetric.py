@@ -5,6 +5,8 @@ the whole ring, 2 pi times). Closed forms from docs/validation.md §2, §10, §1
 
 import dataclasses
 import math
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -17,6 +19,9 @@ from tests.test_elastic_validation import cell_means
 from jaxmpm import (
     Body, Boundaries, Grid, Kinematics, LinearElastic, Numerics, Probe, Rectangle, Scene, SceneError,
 )
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from convergence_study import dropped_pile  # noqa: E402
 
 RHO, YOUNG, NU, G = 1800.0, 1.0e6, 0.3, 9.81
 
@@ -337,63 +342,18 @@ def test_a_rigid_cylinder_rests_on_soil_with_its_weight_and_moves_along_the_axis
     assert float(motion.translation[1]) < 0.0                # it settled into the soil
 
 
-AXISYMMETRIC_PILE = """
-[scene]
-name = "dropped_pile"
-geometry = "axisymmetric"
-gravity = [0.0, -9.81]
-duration = 0.1
-output_every = 0.01
-[grid]
-size = [0.4, 0.7]
-cell = 0.02
-boundaries = {{ left = "slip", right = "slip", bottom = "fixed", top = "free" }}
-[numerics]
-shape = "linear"
-transfer = "apic"
-ppc = 2
-relaxation = 10.0
-[materials.sand]
-model = "drucker_prager"
-density = 1800.0
-young = 5.0e6
-poisson = 0.3
-friction_angle = 30.0
-[materials.steel]
-model = "linear_elastic"
-density = 7850.0
-young = 30.0e9
-poisson = 0.3
-[[bodies]]
-name = "sand"
-material = "sand"
-region = {{ rectangle = [[0.0, 0.0], [0.4, 0.3]] }}
-initial_stress = {{ geostatic = {{ k0 = "jaky" }} }}
-[[bodies]]
-name = "pile"
-material = "steel"
-region = {{ rectangle = [[0.0, 0.32], [0.04, 0.62]] }}
-velocity = [0.0, -2.0]
-kinematics = {kinematics}
-[[contacts]]
-pair = ["sand", "pile"]
-friction = 0.3
-[[probes]]
-name = "sink"
-kind = "body_displacement"
-body = "pile"
-"""
-
-
 def test_a_dropped_pile_sinks_alike_as_rigid_subcycled_and_stiff_elastic_body():
-    # A steel pile (radius 0.04 m, E = 30 GPa) dropped at 2 m/s into sand on the axis. The
+    # A steel pile (radius 0.04 m, E = 30 GPa) dropped at 2 m/s into sand on the axis
+    # (benchmarks/convergence_study.py's dropped pile, whose study gives these rows). The
     # reference is the same pile as an ordinary elastic body at its own step, 37 times shorter
     # (brute force); its stiff limit, the rigid pile, and the subcycled pile at the sand's step
     # must sink as it does (measured: 122.5, 123.0 and 121.6 mm at 0.1 s).
     sinks = {}
-    for label, kinematics in (("elastic", '{ type = "free" }'), ("rigid", '{ type = "rigid" }'),
-                              ("subcycled", '{ type = "free", substeps = "auto" }')):
-        sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(AXISYMMETRIC_PILE.format(kinematics=kinematics)))
+    for label, scene in (("elastic", dropped_pile("free", axisymmetric=True)),
+                         ("rigid", dropped_pile("rigid", axisymmetric=True)),
+                         ("subcycled", dropped_pile("free", axisymmetric=True).with_value(
+                             "bodies.pile.kinematics.substeps", "auto"))):
+        sim = jaxmpm.Simulation(scene)
         result = sim.run(progress=False)
         t = np.asarray(result.time)
         sinks[label] = np.asarray([-np.asarray(result.probes["sink"])[np.argmin(np.abs(t - at)), 1] for at in (0.05, 0.07, 0.1)])
@@ -413,8 +373,7 @@ def test_a_rigid_body_with_a_radial_velocity_is_refused_in_axisymmetry():
 def test_gradients_through_an_axisymmetric_rigid_pile_match_finite_differences():
     # The held radial and turning rows of the rigid solve are part of its implicit-function
     # derivative: d(sinking)/d(steel density, sand friction angle) against central differences.
-    scene = jaxmpm.Scene.from_toml(AXISYMMETRIC_PILE.format(kinematics='{ type = "rigid" }'))
-    sim = jaxmpm.Simulation(scene.with_value("scene.duration", 0.02))
+    sim = jaxmpm.Simulation(dropped_pile("rigid", axisymmetric=True).with_value("scene.duration", 0.02))
 
     def sinking(params):
         return sim.probes(params)["sink"][-1, 1]
