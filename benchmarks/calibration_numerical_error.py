@@ -32,7 +32,7 @@ jax.config.update("jax_enable_x64", True)
 import inverse  # noqa: E402
 import jaxmpm  # noqa: E402
 from calibration_study import WALL_FIT, WALL_SCENE, WALL_START, WALL_TRUTH, wall_observations  # noqa: E402
-from inverse.numerical_error import refined_scene  # noqa: E402
+from jaxmpm.running.refinement import refined_scene  # noqa: E402
 
 
 def study(relaxation, refinement="dt"):

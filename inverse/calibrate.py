@@ -35,10 +35,11 @@ import jax.numpy as jnp
 from inverse.compile_clock import CompileClock
 from inverse.experiments import experiments_from
 from inverse.fit import Fit, fit_from
-from inverse.numerical_error import REFINEMENTS, numerical_shifts, refinement_refused, residuals_at
+from inverse.numerical_error import numerical_shifts, residuals_at
 from inverse.optimise import clock_in, on_devices, optimise, start_values_of
 from inverse.problem import OPTIMIZERS, build_problem, rough_misfit_warning
 from jaxmpm.errors import SceneError
+from jaxmpm.running.refinement import REFINEMENTS, refinement_refused
 from jaxmpm.running.tracing import collector_paused
 
 

@@ -29,33 +29,7 @@ import jax
 import numpy as np
 
 from inverse.experiments import group_experiments, problem_arguments, problem_residuals
-
-REFINEMENTS = ("dt", "cell", "relaxation")
-
-
-def refined_scene(scene, refinement: str):
-    """The scene with its time step halved ("dt": scene.dt, or scene.cfl when dt is not
-    given), its cell halved ("cell": the time step follows from the cfl, and a given
-    scene.dt is halved with it) or its relaxation doubled ("relaxation")."""
-    if refinement == "dt":
-        if scene.dt is not None:
-            return scene.with_value("scene.dt", scene.dt / 2.0)
-        return scene.with_value("scene.cfl", scene.cfl / 2.0)
-    if refinement == "cell":
-        scene = scene.with_value("grid.cell", scene.grid.cell / 2.0)
-        return scene if scene.dt is None else scene.with_value("scene.dt", scene.dt / 2.0)
-    if refinement == "relaxation":
-        return scene.with_value("numerics.relaxation", 2.0 * scene.numerics.relaxation)
-    raise ValueError(f"refinement {refinement!r} is not one of {REFINEMENTS}")
-
-
-def refinement_refused(scene, refinement: str) -> str | None:
-    """Why `refinement` cannot be checked on `scene` (a sentence's end), or None."""
-    if refinement == "relaxation" and (scene.numerics.transfer != "apic" or scene.numerics.relaxation <= 0.0):
-        return (f"the scene {scene.name!r} has no relaxation to double (numerics.transfer = "
-                f"{scene.numerics.transfer!r}, numerics.relaxation = {scene.numerics.relaxation:g}; it needs "
-                "'apic' and a relaxation > 0)")
-    return None
+from jaxmpm.running.refinement import refined_scene
 
 
 def refined_experiments(experiments, refinement: str):

@@ -1,8 +1,8 @@
 """jaxmpm: a differentiable Material Point Method for soil mechanics, in JAX.
 
 Public names: load_scene, Scene (and its parts), simulate, Simulation, Result, drive,
-Checkpointing, ensemble, with_values, use_compilation_cache, SceneError, SimulationError, and the
-material classes.
+Checkpointing, ensemble, with_values, use_compilation_cache, refined_scene, compare_results,
+SceneError, SimulationError, and the material classes.
 """
 
 __version__ = "0.1.0"
@@ -27,6 +27,8 @@ _PUBLIC = {
         "Body", "Boundaries", "Contact", "Geostatic", "Grid", "Kinematics", "Numerics", "Polygon", "Probe",
         "Rectangle", "Scene", "load_scene")},
     "Simulation": "jaxmpm.running.simulation",
+    "refined_scene": "jaxmpm.running.refinement",
+    "compare_results": "jaxmpm.running.refinement",
     "simulate": "jaxmpm.running.simulation",
 }
 
@@ -69,9 +71,11 @@ __all__ = [
     "SceneError",
     "Simulation",
     "SimulationError",
+    "compare_results",
     "drive",
     "ensemble",
     "load_scene",
+    "refined_scene",
     "simulate",
     "use_compilation_cache",
     "with_values",

@@ -1,6 +1,7 @@
 """The `jaxmpm` command.
 
     jaxmpm run SCENE.toml [-o OUT.h5] [--set sand.friction_angle=32 ...] [--resume] [--quiet]
+               [--refine dt | cell | relaxation ...]
     jaxmpm check SCENE.toml [--set ...] [--quick]
     jaxmpm calibrate CONFIG.toml [-o FIT.h5] [--resume] [--quiet]   (added by inverse.command)
     jaxmpm design DESIGN.toml [-o OUT.h5 | .csv | .png]             (added by inverse.design_command)
@@ -54,6 +55,8 @@ def installed_version() -> str:
 
 
 def build_parser():
+    from jaxmpm.running.refinement import REFINEMENTS   # here, not at import: `import jaxmpm.cli` stays quick
+
     parser = argparse.ArgumentParser(prog="jaxmpm", description="Differentiable MPM for soil mechanics.")
     parser.add_argument("--version", action="version", version=f"jaxmpm {installed_version()}")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -65,6 +68,10 @@ def build_parser():
     run.add_argument("--resume", action="store_true",
                      help="continue the interrupted run in OUTPUT (same scene and --set values)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--refine", action="append", default=[], choices=REFINEMENTS,
+                     help="after the run, run the scene again with dt halved (or the cell halved, or the "
+                          "relaxation doubled), write it beside OUTPUT as OUTPUT-dt.h5 (-cell, -relaxation) "
+                          "and print how far each probe moved; repeatable")
     check = commands.add_parser("check", help="check a scene (points, steps, memory) and estimate its run time "
                                               "from a few timed steps")
     check.add_argument("scene", help="scene file (TOML)")
@@ -131,31 +138,76 @@ def run_command(arguments):
     jax.config.update("jax_enable_x64", True)   # a program chooses its precision; scenes pick dtype
     import jaxmpm
 
+    from jaxmpm.running.output import resumable_steps
+    from jaxmpm.running.refinement import compare_results, describe_refinement
+
     jaxmpm.use_compilation_cache()
 
     output = output_path(arguments.output, arguments.scene)
     sim = checked_simulation(arguments)
+    refined = refined_runs(sim, output, arguments.refine)      # every check before anything compiles
     if not arguments.resume:
-        from jaxmpm.running.output import resumable_steps
-
-        done = resumable_steps(output)
-        if done:
-            raise SceneError(f"{str(output)!r} holds {done} computed steps of an unfinished run: continue it with "
-                             "--resume, or give another -o (or remove the file) to start again.")
+        for path in [output, *(path for _, _, path in refined)]:
+            refuse_unfinished(path)
     print(describe(sim), file=sys.stderr)
     print_notes(sim.scene)
+    status, result = run_to_file(sim, output, arguments.quiet, arguments.resume)
+    if status != 0:
+        return status
+    for refinement, refined_sim, path in refined:
+        print(f"refined run, {describe_refinement(sim.scene, refinement)}: {describe(refined_sim)}", file=sys.stderr)
+        status, refined_result = run_to_file(refined_sim, path, arguments.quiet,
+                                             arguments.resume and resumable_steps(path) > 0)
+        if refined_result is None:
+            return status
+        print(f"refinement {refinement} ({describe_refinement(sim.scene, refinement)}), "
+              + compare_results(result, refined_result).describe())
+    return 0
+
+
+def refined_runs(sim, output, refinements):
+    """(refinement, Simulation, output file) for each `--refine` (each once, in the order
+    given), every one checked now: SceneError if a refinement cannot be made on the scene."""
+    import jaxmpm
+    from jaxmpm.running.refinement import refinement_refused
+
+    runs = []
+    for refinement in dict.fromkeys(refinements):
+        reason = refinement_refused(sim.scene, refinement)
+        if reason:
+            raise SceneError(f"--refine {refinement}: {reason}.")
+        path = output.with_name(f"{output.stem}-{refinement}{output.suffix}")
+        runs.append((refinement, jaxmpm.Simulation(jaxmpm.refined_scene(sim.scene, refinement)), path))
+    return runs
+
+
+def refuse_unfinished(path):
+    """SceneError if `path` holds an unfinished run that --resume could continue."""
+    from jaxmpm.running.output import resumable_steps
+
+    done = resumable_steps(path)
+    if done:
+        raise SceneError(f"{str(path)!r} holds {done} computed steps of an unfinished run: continue it with "
+                         "--resume, or give another -o (or remove the file) to start again.")
+
+
+def run_to_file(sim, output, quiet, resume):
+    """(exit status, Result or None) of a run written to `output`: 1 and the part computed
+    if it stopped early, INTERRUPTED and None if interrupted."""
+    import jaxmpm
+
     try:
         with second_signal_ends_at_once(output):
-            sim.run(progress=not arguments.quiet, save_to=output, resume=arguments.resume)
+            result = sim.run(progress=not quiet, save_to=output, resume=resume)
     except jaxmpm.SimulationError as error:
         print(f"jaxmpm: {error}", file=sys.stderr)
         print(f"partial output written to {output}", file=sys.stderr)
-        return 1
+        return 1, error.result
     except KeyboardInterrupt:
         print(f"jaxmpm: interrupted; partial output written to {output} (continue with --resume)", file=sys.stderr)
-        return INTERRUPTED
+        return INTERRUPTED, None
     print(f"wrote {output}")
-    return 0
+    return 0, result
 
 
 @contextlib.contextmanager

@@ -147,3 +147,53 @@ def test_version(capsys):
         main(["--version"])
     assert stopped.value.code == 0
     assert capsys.readouterr().out.strip() == f"jaxmpm {version('jaxmpm')}"
+
+
+def test_run_refine_dt_writes_the_refined_run_and_prints_each_probes_largest_change(block_file, tmp_path, capsys):
+    output = tmp_path / "out.h5"
+    assert main(["run", str(block_file), "-o", str(output), "--quiet", "--refine", "dt"]) == 0
+    printed = capsys.readouterr().out
+    refined_file = tmp_path / "out-dt.h5"
+    assert "scene.cfl 0.4 -> 0.2" in printed and str(refined_file) in printed
+    run, refined = jaxmpm.Result.load(output), jaxmpm.Result.load(refined_file)
+    scene = jaxmpm.Scene.from_toml(refined.scene_toml)
+    assert scene.cfl == 0.2 and len(refined.time) == 2 * len(run.time) - 1
+    # the printed change of the top's vertical displacement, read independently from the two files
+    # at the output times (both runs reach each of them exactly)
+    times = np.arange(0.0, 0.01 + 1e-12, 0.005)
+    at = [np.argmin(abs(run.time - t)) for t in times]
+    at_refined = [np.argmin(abs(refined.time - t)) for t in times]
+    difference = np.abs(run.probes["top"][at, 1] - refined.probes["top"][at_refined, 1])
+    row = next(line.split() for line in printed.splitlines() if line.split()[:2] == ["top", "y"])
+    assert float(row[2]) == pytest.approx(difference.max(), rel=1e-3)
+    assert float(row[3]) == pytest.approx(100 * difference.max() / np.abs(run.probes["top"][at, 1]).max(), rel=1e-2)
+
+
+def test_run_refine_refuses_a_relaxation_the_scene_does_not_have_before_running(block_file, tmp_path, capsys):
+    output = tmp_path / "out.h5"
+    assert main(["run", str(block_file), "-o", str(output), "--quiet", "--refine", "relaxation"]) == 2
+    message = capsys.readouterr().err.strip()
+    assert len(message.splitlines()) == 1
+    assert "--refine relaxation" in message and "numerics.transfer = 'flip'" in message
+    assert not output.exists()
+
+
+def test_compare_results_reads_the_largest_change_at_the_shared_output_times():
+    scene = jaxmpm.Scene.from_toml(BLOCK)           # output_every 0.005 s
+    time = np.linspace(0.0, 0.01, 11)
+    fine = np.linspace(0.0, 0.006, 13)               # a refined run that stopped at 6 ms
+    run = jaxmpm.Result(scene.to_toml(), time, {"top": np.stack([time, -time**2], axis=1), "still": 0 * time[:, None]},
+                        {})
+    refined = jaxmpm.Result(scene.to_toml(), fine, {"top": np.stack([fine + fine**2, -fine**2], axis=1),
+                                                    "still": 0 * fine[:, None]}, {}, complete=False)
+    comparison = jaxmpm.compare_results(run, refined)
+    np.testing.assert_allclose(comparison.times, [0.0, 0.005])
+    by_label = {change.label: change for change in comparison.changes}
+    top_x = by_label["top x"]
+    assert top_x.change == pytest.approx(0.005**2) and top_x.at == pytest.approx(0.005)
+    assert top_x.relative == pytest.approx(0.005**2 / 0.005)
+    assert by_label["top y"].change == pytest.approx(0.0, abs=1e-15)
+    assert np.isnan(by_label["still"].relative)
+    assert comparison.largest() is top_x
+    described = comparison.describe()
+    assert "the refined run stopped there" in described and described.splitlines()[2].split()[:2] == ["top", "x"]
