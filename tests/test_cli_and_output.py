@@ -197,3 +197,15 @@ def test_compare_results_reads_the_largest_change_at_the_shared_output_times():
     assert comparison.largest() is top_x
     described = comparison.describe()
     assert "the refined run stopped there" in described and described.splitlines()[2].split()[:2] == ["top", "x"]
+
+
+def test_refined_scene_halves_the_step_or_the_cell_and_doubles_the_relaxation():
+    scene = jaxmpm.Scene.from_toml(BLOCK)                    # cfl 0.4 (the default), cell 0.05
+    assert jaxmpm.refined_scene(scene, "dt").cfl == pytest.approx(scene.cfl / 2)
+    given = scene.with_value("scene.dt", 1e-4)
+    assert jaxmpm.refined_scene(given, "dt").dt == pytest.approx(5e-5)
+    finer = jaxmpm.refined_scene(given, "cell")
+    assert finer.grid.cell == pytest.approx(0.025) and finer.dt == pytest.approx(5e-5)
+    assert jaxmpm.Simulation(finer).point_count == 4 * jaxmpm.Simulation(given).point_count
+    relaxed = scene.with_value("numerics.transfer", "apic").with_value("numerics.relaxation", 10.0)
+    assert jaxmpm.refined_scene(relaxed, "relaxation").numerics.relaxation == 20.0
