@@ -239,6 +239,32 @@ def test_rigid_body_falls_freely():
     assert float(motion.velocity[1]) == pytest.approx(-G * sim.steps * sim.dt, rel=1e-12)
 
 
+def rigid_weight_near(edges, gravity, lower):
+    """The free-fall scene's rigid weight, its lower-left corner at `lower`."""
+    return Scene(
+        name="near_edge",
+        grid=Grid(size=(1.0, 1.0), cell=0.05, boundaries=Boundaries(*edges)),
+        materials={"steel": LinearElastic(density=7800.0, young=2e11, poisson=0.3)},
+        bodies=(Body("weight", "steel", Rectangle(lower, (lower[0] + 0.2, lower[1] + 0.2)),
+                     kinematics=Kinematics("rigid")),),
+        gravity=gravity, duration=0.01, dt=1e-3, output_every=0.005,
+    )
+
+
+def test_a_rigid_body_on_a_held_grid_edge_that_gravity_pulls_it_into_is_refused():
+    # rigid bodies ignore the grid-edge conditions (docs/physics.md section 12): standing on the
+    # fixed bottom edge, the weight fell through it and left the grid after 231 steps
+    with pytest.raises(SceneError, match=r"bodies\[0\] \('weight'\) is rigid and stands 0.02 m from the bottom "
+                                         r"grid edge \(grid.boundaries.bottom = 'fixed'\)"):
+        Simulation(rigid_weight_near(("slip", "slip", "fixed", "free"), (0.0, -G), (0.4, 0.02)))
+    with pytest.raises(SceneError, match=r"the left grid edge \(grid.boundaries.left = 'slip'\)"):
+        Simulation(rigid_weight_near(("slip", "slip", "free", "free"), (-3.0, -G), (0.0, 0.4)))
+    # a free edge, an edge gravity does not pull it towards, or a cell of room are all accepted
+    Simulation(rigid_weight_near(("slip", "slip", "free", "free"), (0.0, -G), (0.4, 0.0)))
+    Simulation(rigid_weight_near(("slip", "slip", "fixed", "free"), (0.0, -G), (0.0, 0.4)))
+    Simulation(rigid_weight_near(("slip", "slip", "fixed", "free"), (0.0, -G), (0.4, 0.05)))
+
+
 def test_rigid_body_comes_to_rest_on_sand():
     # A rigid footing on a sand layer: at equilibrium the sand carries its weight (contact
     # force = weight) and it stops. Local damping speeds up the approach to rest.

@@ -107,6 +107,30 @@ def check_bodies(scene):
             )
         if body.initial_stress is not None:
             check_initial_stress(scene, where, body)
+        if body.kinematics.type == "rigid":
+            check_rigid_not_on_held_edge(scene, where, body)
+
+
+def check_rigid_not_on_held_edge(scene, where, body):
+    """A rigid body moves under gravity and its contacts only: the grid-edge conditions do not
+    hold it (docs/physics.md, section 12), so one standing within a cell of a fixed or slip edge
+    that gravity pulls it towards would fall through that edge and off the grid."""
+    grid, gravity = scene.grid, scene.gravity
+    lowest = [min(vertex[axis] for vertex in body.region.vertices) for axis in (0, 1)]
+    highest = [max(vertex[axis] for vertex in body.region.vertices) for axis in (0, 1)]
+    edges = (("left", gravity[0] < 0.0, lowest[0] - grid.origin[0]),
+             ("right", gravity[0] > 0.0, grid.origin[0] + grid.size[0] - highest[0]),
+             ("bottom", gravity[1] < 0.0, lowest[1] - grid.origin[1]),
+             ("top", gravity[1] > 0.0, grid.origin[1] + grid.size[1] - highest[1]))
+    for edge, pulled, gap in edges:
+        kind = getattr(grid.boundaries, edge)
+        if pulled and kind != "free" and gap < grid.cell:
+            raise SceneError(
+                f"{where} ({body.name!r}) is rigid and stands {gap:g} m from the {edge} grid edge "
+                f"(grid.boundaries.{edge} = {kind!r}), which gravity pulls it towards: rigid bodies ignore the "
+                "grid-edge conditions, so it would fall through; stand it on a prescribed body (a base slab) "
+                "or on soil at least a cell thick."
+            )
 
 
 def check_region(where, region, grid: Grid):
