@@ -156,13 +156,14 @@ def run_command(arguments):
         return status
     for refinement, refined_sim, path in refined:
         print(f"refined run, {describe_refinement(sim.scene, refinement)}: {describe(refined_sim)}", file=sys.stderr)
-        status, refined_result = run_to_file(refined_sim, path, arguments.quiet,
-                                             arguments.resume and resumable_steps(path) > 0)
+        refined_status, refined_result = run_to_file(refined_sim, path, arguments.quiet,
+                                                     arguments.resume and resumable_steps(path) > 0)
         if refined_result is None:
-            return status
+            return refined_status
         print(f"refinement {refinement} ({describe_refinement(sim.scene, refinement)}), "
               + compare_results(result, refined_result).describe())
-    return 0
+        status = max(status, refined_status)     # 1 if a refined run stopped early (compared up to there)
+    return status
 
 
 def refined_runs(sim, output, refinements):
