@@ -153,6 +153,8 @@ def run_command(arguments):
     print_notes(sim.scene)
     status, result = run_to_file(sim, output, arguments.quiet, arguments.resume)
     if status != 0:
+        if refined:
+            print("jaxmpm: the refined runs (--refine) were not started: the run itself did not finish", file=sys.stderr)
         return status
     for refinement, refined_sim, path in refined:
         print(f"refined run, {describe_refinement(sim.scene, refinement)}: {describe(refined_sim)}", file=sys.stderr)
@@ -178,7 +180,11 @@ def refined_runs(sim, output, refinements):
         if reason:
             raise SceneError(f"--refine {refinement}: {reason}.")
         path = output.with_name(f"{output.stem}-{refinement}{output.suffix}")
-        runs.append((refinement, jaxmpm.Simulation(jaxmpm.refined_scene(sim.scene, refinement)), path))
+        try:
+            refined = jaxmpm.Simulation(jaxmpm.refined_scene(sim.scene, refinement))
+        except SceneError as error:
+            raise SceneError(f"--refine {refinement}: {error}") from None
+        runs.append((refinement, refined, path))
     return runs
 
 

@@ -158,45 +158,61 @@ def test_run_refine_dt_writes_the_refined_run_and_prints_each_probes_largest_cha
     run, refined = jaxmpm.Result.load(output), jaxmpm.Result.load(refined_file)
     scene = jaxmpm.Scene.from_toml(refined.scene_toml)
     assert scene.cfl == 0.2 and len(refined.time) == 2 * len(run.time) - 1
-    # the printed change of the top's vertical displacement, read independently from the two files
-    # at the output times (both runs reach each of them exactly)
-    times = np.arange(0.0, 0.01 + 1e-12, 0.005)
-    at = [np.argmin(abs(run.time - t)) for t in times]
-    at_refined = [np.argmin(abs(refined.time - t)) for t in times]
-    difference = np.abs(run.probes["top"][at, 1] - refined.probes["top"][at_refined, 1])
+    # the printed change of the top's vertical displacement, read independently from the two
+    # files: its time averages over each output interval (0.005 s), trapezoidal rule
+    def means(result):
+        values = []
+        for start, stop in ((0.0, 0.005), (0.005, 0.01)):
+            inside = (result.time >= start - 1e-12) & (result.time <= stop + 1e-12)
+            t, v = result.time[inside], result.probes["top"][inside, 1]
+            values.append(np.sum(0.5 * (v[1:] + v[:-1]) * np.diff(t)) / (t[-1] - t[0]))
+        return np.array(values)
+
+    ours, theirs = means(run), means(refined)
+    difference = np.abs(ours - theirs)
     row = next(line.split() for line in printed.splitlines() if line.split()[:2] == ["top", "y"])
     assert float(row[2]) == pytest.approx(difference.max(), rel=1e-3)
-    assert float(row[3]) == pytest.approx(100 * difference.max() / np.abs(run.probes["top"][at, 1]).max(), rel=1e-2)
+    largest = max(np.abs(ours).max(), np.abs(theirs).max())
+    assert float(row[3]) == pytest.approx(100 * difference.max() / largest, rel=1e-2)
+    assert float(row[5]) == pytest.approx([0.0025, 0.0075][np.argmax(difference)])
 
 
 def test_run_refine_refuses_a_relaxation_the_scene_does_not_have_before_running(block_file, tmp_path, capsys):
     output = tmp_path / "out.h5"
     assert main(["run", str(block_file), "-o", str(output), "--quiet", "--refine", "relaxation"]) == 2
-    message = capsys.readouterr().err.strip()
-    assert len(message.splitlines()) == 1
+    message = capsys.readouterr().err
     assert "--refine relaxation" in message and "numerics.transfer = 'flip'" in message
     assert not output.exists()
 
 
-def test_compare_results_reads_the_largest_change_at_the_shared_output_times():
-    scene = jaxmpm.Scene.from_toml(BLOCK)           # output_every 0.005 s
+def test_compare_results_compares_interval_means_up_to_the_time_both_runs_reached():
+    scene = jaxmpm.Scene.from_toml(BLOCK).with_value("scene.output_every", 0.01)   # one output interval
     time = np.linspace(0.0, 0.01, 11)
     fine = np.linspace(0.0, 0.006, 13)               # a refined run that stopped at 6 ms
-    run = jaxmpm.Result(scene.to_toml(), time, {"top": np.stack([time, -time**2], axis=1), "still": 0 * time[:, None]},
-                        {})
+    ripple = np.where(np.arange(11) % 2 == 0, 1.0, -1.0)   # a force flipping sign each step
+    run = jaxmpm.Result(scene.to_toml(), time, {"top": np.stack([time, -time**2], axis=1), "still": 0 * time[:, None],
+                                                "appears": 0 * time[:, None], "ripple": ripple[:, None]}, {})
     refined = jaxmpm.Result(scene.to_toml(), fine, {"top": np.stack([fine + fine**2, -fine**2], axis=1),
-                                                    "still": 0 * fine[:, None]}, {}, complete=False)
+                                                    "still": 0 * fine[:, None], "appears": fine[:, None],
+                                                    "ripple": 0 * fine[:, None]}, {}, complete=False)
     comparison = jaxmpm.compare_results(run, refined)
-    np.testing.assert_allclose(comparison.times, [0.0, 0.005])
+    assert comparison.end == pytest.approx(0.006)
     by_label = {change.label: change for change in comparison.changes}
+    # over [0, 6 ms]: the mean of t is 3 ms in both; t^2 adds 6^2 / 3 = 12 (mm)^2 / ms, plus the
+    # trapezoidal rule's h^2 / 6 on the refined run's 0.5 ms steps
     top_x = by_label["top x"]
-    assert top_x.change == pytest.approx(0.005**2) and top_x.at == pytest.approx(0.005)
-    assert top_x.relative == pytest.approx(0.005**2 / 0.005)
-    assert by_label["top y"].change == pytest.approx(0.0, abs=1e-15)
+    assert top_x.change == pytest.approx(0.006**2 / 3 + 0.0005**2 / 6, rel=1e-9) and top_x.at == pytest.approx(0.003)
+    assert top_x.relative == pytest.approx(top_x.change / (0.003 + top_x.change))
+    assert by_label["top y"].change == pytest.approx((0.001**2 - 0.0005**2) / 6, rel=1e-9)   # the two rules on -t^2
     assert np.isnan(by_label["still"].relative)
-    assert comparison.largest() is top_x
-    described = comparison.describe()
-    assert "the refined run stopped there" in described and described.splitlines()[2].split()[:2] == ["top", "x"]
+    # zero in the run, not in the refined one: a full change, not hidden as "-"
+    assert by_label["appears"].relative == pytest.approx(1.0)
+    # a step-to-step ripple averages out: +1 -1 ... over 0-6 ms (7 samples) is 0 by the trapezoid
+    assert by_label["ripple"].change == pytest.approx(0.0, abs=1e-12)
+    assert comparison.largest_change() is by_label["appears"]
+    described = comparison.describe().splitlines()
+    assert "the refined run stopped there" in described[0]
+    assert [line.split()[0] for line in described[2:5]] == ["appears", "top", "top"]
 
 
 def test_refined_scene_halves_the_step_or_the_cell_and_doubles_the_relaxation():

@@ -2,12 +2,15 @@
 
 An explicit MPM result depends on the time step, the cell and the transfer's relaxation
 (docs/convergence.md). `refined_scene` makes the scene one step finer in one of them;
-`compare_results` reads how far each probe moves, at the scene's output times:
+`compare_results` reads how far each probe moves over the run. Probes are recorded every step,
+and forces ripple from one step to the next (a contact tip crossing a row of nodes), so each
+run's probe is averaged over each output interval (the trapezoidal rule on its own steps) and
+the means are compared:
 
-    change = max_t |a(t) - b(t)|,   relative = change / max_t |a(t)|
+    change = max_k |A_k - B_k|,   relative = change / max_k max(|A_k|, |B_k|)
 
-(a the run, b the refined run, both interpolated linearly to the output times they share),
-the largest difference over the run against the component's largest value, so that a
+(A_k, B_k the run's and the refined run's means over the k-th output interval, up to the time
+both reached), the largest difference against the component's largest mean, so that a
 quantity passing through zero does not read as a large relative change. Halving dt from the
 scene's own should change every probe by well under the accuracy a user needs; if it does not,
 the run is not converged in dt and its numbers carry that error.
@@ -58,6 +61,8 @@ def describe_refinement(scene, refinement: str) -> str:
             "scene.cfl", scene.cfl, refined.cfl)
     elif refinement == "cell":
         key, before, after = "grid.cell", scene.grid.cell, refined.grid.cell
+        if scene.dt is not None:
+            return f"{key} {before:g} -> {after:g}, scene.dt {scene.dt:g} -> {refined.dt:g}"
     else:
         key, before, after = "numerics.relaxation", scene.numerics.relaxation, refined.numerics.relaxation
     return f"{key} {before:g} -> {after:g}"
@@ -65,10 +70,11 @@ def describe_refinement(scene, refinement: str) -> str:
 
 @dataclasses.dataclass(frozen=True)
 class ProbeChange:
-    """One probe component's largest change over the shared output times: `axis` its name
-    ("x", "y"; "r", "z" in axisymmetry; "" for a probe of one value), `change` (the
-    probe's unit), `largest` max |value| of the run, `relative` change / largest (nan when
-    the value is 0 throughout), `at` the time of the largest change [s]."""
+    """One probe component's largest change of its output-interval means: `axis` its name
+    ("x", "y"; "r", "z" in axisymmetry; "" for a probe of one value), `change` (the probe's
+    unit), `largest` its largest |mean| in either run, `relative` change / largest (nan when
+    it is 0 in both throughout, or when a run holds a non-finite value), `at` the middle of
+    the interval of the largest change [s]."""
 
     probe: str
     axis: str
@@ -84,59 +90,87 @@ class ProbeChange:
 
 @dataclasses.dataclass(frozen=True)
 class Comparison:
-    """`changes` (one ProbeChange per probe component) over `times` (the output times both
-    runs reached); `refined_complete` False when the refined run stopped early."""
+    """`changes` (one ProbeChange per probe component) up to `end` [s], the time both runs
+    reached; `refined_complete` False when the refined run stopped early."""
 
     changes: tuple
-    times: np.ndarray
+    end: float
     refined_complete: bool = True
 
-    def largest(self) -> ProbeChange | None:
+    def largest_change(self) -> ProbeChange | None:
         """The component with the largest relative change (None without probes)."""
         finite = [change for change in self.changes if np.isfinite(change.relative)]
         return max(finite, key=lambda change: change.relative, default=None)
 
     def describe(self) -> str:
-        """A table, one line a probe component, largest relative change first."""
+        """A table, one line a probe component, largest relative change first (a non-finite
+        change before all)."""
         if not self.changes:
             return "the scene has no probes to compare"
-        span = f"{len(self.times)} output times to t = {self.times[-1]:.4g} s"
-        if not self.refined_complete:
-            span += " (the refined run stopped there)"
+        span = f"to t = {self.end:.4g} s" + ("" if self.refined_complete else " (the refined run stopped there)")
+        span += ", means over each output interval"
         width = max(len(change.label) for change in self.changes)
-        lines = [f"largest change over {span}:", f"  {'probe':<{width}}  {'change':>12}  {'of largest':>10}  {'at t [s]':>9}"]
-        order = sorted(self.changes, key=lambda c: -c.relative if np.isfinite(c.relative) else np.inf)
-        for change in order:
+        lines = [f"largest change over the run {span}:",
+                 f"  {'probe':<{width}}  {'change':>12}  {'of largest':>10}  {'at t [s]':>9}"]
+        for change in sorted(self.changes, key=order):
             relative = f"{100.0 * change.relative:.3g} %" if np.isfinite(change.relative) else "-"
+            if not np.isfinite(change.change):
+                relative = "not finite"
             lines.append(f"  {change.label:<{width}}  {change.change:>12.4g}  {relative:>10}  {change.at:>9.4g}")
         return "\n".join(lines)
 
 
-def output_times(scene, end):
-    """The scene's output times k * output_every from 0 up to `end` [s]."""
-    count = int(np.floor(end / scene.output_every * (1.0 + 1e-9))) + 1
-    return scene.output_every * np.arange(count)
+def order(change):
+    """Sort key: a non-finite change first, then the largest relative change, then by name."""
+    if not np.isfinite(change.change):
+        return (0, 0.0, change.label)
+    if not np.isfinite(change.relative):
+        return (2, 0.0, change.label)
+    return (1, -change.relative, change.label)
+
+
+def interval_means(time, values, edges):
+    """(K, k) time averages of `values` (T, k) over each interval edges[i] <= t <= edges[i + 1],
+    by the trapezoidal rule on the run's own steps (exact for a value linear in time, so
+    runs at different steps are compared without a bias of their own)."""
+    means = np.zeros((len(edges) - 1, values.shape[1]))
+    for index, (start, stop) in enumerate(zip(edges[:-1], edges[1:])):
+        inside = (time >= start - 1e-9 * stop) & (time <= stop * (1.0 + 1e-9))
+        t, v = time[inside], values[inside]
+        span = t[-1] - t[0] if len(t) > 1 else 0.0
+        area = np.sum(0.5 * (v[1:] + v[:-1]) * np.diff(t)[:, None], axis=0)
+        means[index] = area / span if span > 0.0 else v.mean(axis=0)
+    return means
 
 
 def compare_results(result, refined) -> Comparison:
     """How far each probe of `result` (a Result) moves in `refined` (the Result of its scene at
-    refined numerics, `refined_scene`), at the output times both reached."""
+    refined numerics, `refined_scene`): their means over each output interval, up to the time
+    both reached (module docstring)."""
     from jaxmpm.scene import Scene
 
     scene = Scene.from_toml(result.scene_toml)
     axes = ("r", "z") if scene.geometry == "axisymmetric" else ("x", "y")
-    times = output_times(scene, min(result.time[-1], refined.time[-1]))
+    end = float(min(result.time[-1], refined.time[-1]))
+    interval = scene.output_interval
+    edges = interval * np.arange(int(np.floor(end / interval * (1.0 + 1e-9))) + 1)
+    if edges[-1] < end * (1.0 - 1e-9):
+        edges = np.append(edges, end)             # the part of an interval the shorter run reached
+    if len(edges) < 2:
+        edges = np.array([0.0, end])
+    middles = 0.5 * (edges[1:] + edges[:-1])
     changes = []
     for name, values in result.probes.items():
-        ours, theirs = np.asarray(values, float), np.asarray(refined.probes[name], float)
-        ours, theirs = ours.reshape(len(ours), -1), theirs.reshape(len(theirs), -1)
-        names = axes if ours.shape[1] == 2 else [""] if ours.shape[1] == 1 else [str(i) for i in range(ours.shape[1])]
+        run_means = interval_means(result.time, np.asarray(values, float).reshape(len(values), -1), edges)
+        refined_values = np.asarray(refined.probes[name], float)
+        refined_means = interval_means(refined.time, refined_values.reshape(len(refined_values), -1), edges)
+        count = run_means.shape[1]
+        names = axes if count == 2 else [""] if count == 1 else [str(i) for i in range(count)]
         for component, axis in enumerate(names):
-            a = np.interp(times, result.time, ours[:, component])
-            b = np.interp(times, refined.time, theirs[:, component])
-            difference = np.abs(a - b)
-            at = int(np.argmax(difference))
-            largest = float(np.max(np.abs(a)))
-            relative = float(difference[at] / largest) if largest > 0.0 else float("nan")
-            changes.append(ProbeChange(name, axis, float(difference[at]), largest, relative, float(times[at])))
-    return Comparison(tuple(changes), times, bool(refined.complete))
+            ours, theirs = run_means[:, component], refined_means[:, component]
+            difference = np.abs(ours - theirs)
+            at = int(np.argmax(np.where(np.isfinite(difference), difference, np.inf)))
+            largest = float(np.max(np.maximum(np.abs(ours), np.abs(theirs))))
+            relative = float(difference[at] / largest) if largest > 0.0 and np.isfinite(largest) else float("nan")
+            changes.append(ProbeChange(name, axis, float(difference[at]), largest, relative, float(middles[at])))
+    return Comparison(tuple(changes), end, bool(refined.complete))

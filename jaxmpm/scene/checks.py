@@ -114,23 +114,48 @@ def check_bodies(scene):
 def check_rigid_not_on_held_edge(scene, where, body):
     """A rigid body moves under gravity and its contacts only: the grid-edge conditions do not
     hold it (docs/physics.md, section 12), so one standing within a cell of a fixed or slip edge
-    that gravity pulls it towards would fall through that edge and off the grid."""
+    that gravity pulls it towards, with no other body between (a slab, soil), would fall
+    through that edge and off the grid. (One higher up falls all the same; this catches the
+    body set on the edge.)"""
     grid, gravity = scene.grid, scene.gravity
-    lowest = [min(vertex[axis] for vertex in body.region.vertices) for axis in (0, 1)]
-    highest = [max(vertex[axis] for vertex in body.region.vertices) for axis in (0, 1)]
-    edges = (("left", gravity[0] < 0.0, lowest[0] - grid.origin[0]),
-             ("right", gravity[0] > 0.0, grid.origin[0] + grid.size[0] - highest[0]),
-             ("bottom", gravity[1] < 0.0, lowest[1] - grid.origin[1]),
-             ("top", gravity[1] > 0.0, grid.origin[1] + grid.size[1] - highest[1]))
-    for edge, pulled, gap in edges:
+    low, high = bounds(body.region)
+    edges = (("left", 0, -1, gravity[0] < 0.0, low[0] - grid.origin[0]),
+             ("right", 0, 1, gravity[0] > 0.0, grid.origin[0] + grid.size[0] - high[0]),
+             ("bottom", 1, -1, gravity[1] < 0.0, low[1] - grid.origin[1]),
+             ("top", 1, 1, gravity[1] > 0.0, grid.origin[1] + grid.size[1] - high[1]))
+    for edge, axis, side, pulled, gap in edges:
         kind = getattr(grid.boundaries, edge)
-        if pulled and kind != "free" and gap < grid.cell:
+        if pulled and kind != "free" and gap < grid.cell and not held_by_another(scene, body, axis, side):
             raise SceneError(
                 f"{where} ({body.name!r}) is rigid and stands {gap:g} m from the {edge} grid edge "
                 f"(grid.boundaries.{edge} = {kind!r}), which gravity pulls it towards: rigid bodies ignore the "
                 "grid-edge conditions, so it would fall through; stand it on a prescribed body (a base slab) "
-                "or on soil at least a cell thick."
+                "or on soil."
             )
+
+
+def bounds(region):
+    """(lowest, highest) corner of the region's bounding box."""
+    vertices = region.vertices
+    return ([min(vertex[axis] for vertex in vertices) for axis in (0, 1)],
+            [max(vertex[axis] for vertex in vertices) for axis in (0, 1)])
+
+
+def held_by_another(scene, body, axis, side):
+    """Whether another body lies between `body` and the grid edge on `side` (-1 low, +1 high)
+    of `axis`: its extent along the edge overlaps the body's and it reaches further towards
+    the edge than the body does."""
+    low, high = bounds(body.region)
+    along = 1 - axis
+    for other in scene.bodies:
+        if other is body:
+            continue
+        other_low, other_high = bounds(other.region)
+        overlaps = other_high[along] > low[along] and other_low[along] < high[along]
+        nearer = other_low[axis] < low[axis] if side < 0 else other_high[axis] > high[axis]
+        if overlaps and nearer:
+            return True
+    return False
 
 
 def check_region(where, region, grid: Grid):
