@@ -149,6 +149,8 @@ def run_command(arguments):
     if not arguments.resume:
         for path in [output, *(path for _, _, path in refined)]:
             refuse_unfinished(path)
+    for refinement, refined_sim, path in refined if arguments.resume else ():
+        refuse_other_scene(refinement, refined_sim, path)
     print(describe(sim), file=sys.stderr)
     print_notes(sim.scene)
     status, result = run_to_file(sim, output, arguments.quiet, arguments.resume)
@@ -196,6 +198,20 @@ def refuse_unfinished(path):
     if done:
         raise SceneError(f"{str(path)!r} holds {done} computed steps of an unfinished run: continue it with "
                          "--resume, or give another -o (or remove the file) to start again.")
+
+
+def refuse_other_scene(refinement, sim, path):
+    """SceneError, before anything runs, if `--resume` would continue a refined run in `path`
+    that was run with another scene (another --set, or an edited scene file)."""
+    import h5py
+
+    from jaxmpm.running.output import resumable_steps
+
+    if resumable_steps(path):
+        with h5py.File(path, "r") as file:
+            if str(file.attrs["scene"]) != sim.scene.to_toml():
+                raise SceneError(f"--refine {refinement} --resume: {str(path)!r} holds an unfinished run of another "
+                                 "scene: resume with the same scene file and --set values, or remove the file.")
 
 
 def run_to_file(sim, output, quiet, resume):

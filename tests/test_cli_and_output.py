@@ -225,3 +225,22 @@ def test_refined_scene_halves_the_step_or_the_cell_and_doubles_the_relaxation():
     assert jaxmpm.Simulation(finer).point_count == 4 * jaxmpm.Simulation(given).point_count
     relaxed = scene.with_value("numerics.transfer", "apic").with_value("numerics.relaxation", 10.0)
     assert jaxmpm.refined_scene(relaxed, "relaxation").numerics.relaxation == 20.0
+
+
+def test_run_refine_keeps_an_unfinished_refined_file_and_resumes_only_its_own_scene(block_file, tmp_path, capsys):
+    # an unfinished run of another scene (a thrown block that leaves the grid) where the refined
+    # run would be written
+    flying = BLOCK.replace('right = "slip"', 'right = "free"').replace(
+        'region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }',
+        'region = { rectangle = [[0.0, 0.0], [0.2, 0.2]] }\nvelocity = [40.0, 0.0]',
+    )
+    (tmp_path / "flying.toml").write_text(flying)
+    refined_file = tmp_path / "out-dt.h5"
+    assert main(["run", str(tmp_path / "flying.toml"), "-o", str(refined_file), "--quiet"]) == 1
+    before = refined_file.read_bytes()
+    output = tmp_path / "out.h5"
+    assert main(["run", str(block_file), "-o", str(output), "--quiet", "--refine", "dt"]) == 2
+    assert "unfinished run" in capsys.readouterr().err and not output.exists()
+    assert main(["run", str(block_file), "-o", str(output), "--quiet", "--refine", "dt", "--resume"]) == 2
+    assert "--refine dt --resume" in capsys.readouterr().err and not output.exists()
+    assert refined_file.read_bytes() == before
