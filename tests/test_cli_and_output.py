@@ -12,6 +12,13 @@ from jaxmpm.cli import main
 from tests.scenes import BLOCK
 
 
+# A block thrown at 40 m/s leaves a 0.4 m grid through its free edge within a few steps.
+FLYING = BLOCK.replace('right = "slip"', 'right = "free"').replace(
+    'region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }',
+    'region = { rectangle = [[0.0, 0.0], [0.2, 0.2]] }\nvelocity = [40.0, 0.0]',
+)
+
+
 @pytest.fixture
 def block_file(tmp_path):
     path = tmp_path / "block.toml"
@@ -79,13 +86,8 @@ def test_cli_process_exits_2_without_traceback(tmp_path):
 
 
 def test_failed_run_keeps_what_it_computed(tmp_path, capsys):
-    # A block thrown at 40 m/s leaves a 0.4 m grid through its free edge within a few steps.
-    flying = BLOCK.replace('right = "slip"', 'right = "free"').replace(
-        'region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }',
-        'region = { rectangle = [[0.0, 0.0], [0.2, 0.2]] }\nvelocity = [40.0, 0.0]',
-    )
     path = tmp_path / "flying.toml"
-    path.write_text(flying)
+    path.write_text(FLYING)
     output = tmp_path / "flying.h5"
     assert main(["run", str(path), "-o", str(output), "--quiet"]) == 1
     message = capsys.readouterr().err
@@ -230,11 +232,7 @@ def test_refined_scene_halves_the_step_or_the_cell_and_doubles_the_relaxation():
 def test_run_refine_keeps_an_unfinished_refined_file_and_resumes_only_its_own_scene(block_file, tmp_path, capsys):
     # an unfinished run of another scene (a thrown block that leaves the grid) where the refined
     # run would be written
-    flying = BLOCK.replace('right = "slip"', 'right = "free"').replace(
-        'region = { rectangle = [[0.0, 0.0], [0.4, 0.2]] }',
-        'region = { rectangle = [[0.0, 0.0], [0.2, 0.2]] }\nvelocity = [40.0, 0.0]',
-    )
-    (tmp_path / "flying.toml").write_text(flying)
+    (tmp_path / "flying.toml").write_text(FLYING)
     refined_file = tmp_path / "out-dt.h5"
     assert main(["run", str(tmp_path / "flying.toml"), "-o", str(refined_file), "--quiet"]) == 1
     before = refined_file.read_bytes()
