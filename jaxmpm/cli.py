@@ -138,9 +138,6 @@ def run_command(arguments):
     jax.config.update("jax_enable_x64", True)   # a program chooses its precision; scenes pick dtype
     import jaxmpm
 
-    from jaxmpm.running.output import resumable_steps
-    from jaxmpm.running.refinement import compare_results, describe_refinement
-
     jaxmpm.use_compilation_cache()
 
     output = output_path(arguments.output, arguments.scene)
@@ -158,15 +155,25 @@ def run_command(arguments):
         if refined:
             print("jaxmpm: the refined runs (--refine) were not started: the run itself did not finish", file=sys.stderr)
         return status
+    return run_refinements(sim.scene, result, refined, arguments.quiet, arguments.resume)
+
+
+def run_refinements(scene, result, refined, quiet, resume):
+    """Each refined run of `refined_runs` after the run (`result`), written to its file (and
+    continued with `resume` when its file holds an unfinished run), then compared with it:
+    the exit status, 1 if a refined run stopped early (compared up to where it stopped)."""
+    from jaxmpm.running.output import resumable_steps
+    from jaxmpm.running.refinement import compare_results, describe_refinement
+
+    status = 0
     for refinement, refined_sim, path in refined:
-        print(f"refined run, {describe_refinement(sim.scene, refinement)}: {describe(refined_sim)}", file=sys.stderr)
-        refined_status, refined_result = run_to_file(refined_sim, path, arguments.quiet,
-                                                     arguments.resume and resumable_steps(path) > 0)
+        change = describe_refinement(scene, refinement)
+        print(f"refined run, {change}: {describe(refined_sim)}", file=sys.stderr)
+        refined_status, refined_result = run_to_file(refined_sim, path, quiet, resume and resumable_steps(path) > 0)
         if refined_result is None:
             return refined_status
-        print(f"refinement {refinement} ({describe_refinement(sim.scene, refinement)}), "
-              + compare_results(result, refined_result).describe())
-        status = max(status, refined_status)     # 1 if a refined run stopped early (compared up to there)
+        print(f"refinement {refinement} ({change}), {compare_results(result, refined_result).describe()}")
+        status = max(status, refined_status)
     return status
 
 
