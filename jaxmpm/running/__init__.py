@@ -7,6 +7,7 @@
 - `runner`: a forward run in chunks: progress, streaming, resume, interrupts;
 - `output`, `results`: the HDF5 output file, written as the run goes, and read back;
 - `budget`, `run_time`: memory and run-time estimates before a run;
+- `refinement`: the scene at half the step or cell, and how far a run's probes move there;
 - `ensembles`: batches of parameters over devices;
 - `compilation_cache`, `tracing`, `progress`: compiled programs kept, traced quickly, shown.
 """
