@@ -248,9 +248,7 @@ def probes_figure(result):
                                   layout="constrained", squeeze=False)
     for axes, name in zip(panels[:, 0], names):
         values = np.asarray(result.probes[name]).reshape(len(result.time), -1)
-        components = ["r", "z"] if axisymmetric else ["x", "y"]
-        labels = components if values.shape[1] == 2 else [str(k) for k in range(values.shape[1])]
-        for component, label in enumerate(labels):
+        for component, label in enumerate(scene.component_names(values.shape[1])):
             axes.plot(result.time, values[:, component], label=label)
         axes.set_ylabel(f"{name} [{units.get(kinds.get(name), '-')}]")
         axes.legend(loc="best")

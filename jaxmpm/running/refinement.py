@@ -150,7 +150,6 @@ def compare_results(result, refined) -> Comparison:
     from jaxmpm.scene import Scene
 
     scene = Scene.from_toml(result.scene_toml)
-    axes = ("r", "z") if scene.geometry == "axisymmetric" else ("x", "y")
     end = float(min(result.time[-1], refined.time[-1]))
     interval = scene.output_interval
     edges = interval * np.arange(int(np.floor(end / interval * (1.0 + 1e-9))) + 1)
@@ -165,7 +164,7 @@ def compare_results(result, refined) -> Comparison:
         refined_values = np.asarray(refined.probes[name], float)
         refined_means = interval_means(refined.time, refined_values.reshape(len(refined_values), -1), edges)
         count = run_means.shape[1]
-        names = axes if count == 2 else [""] if count == 1 else [str(i) for i in range(count)]
+        names = [""] if count == 1 else scene.component_names(count)
         for component, axis in enumerate(names):
             ours, theirs = run_means[:, component], refined_means[:, component]
             difference = np.abs(ours - theirs)

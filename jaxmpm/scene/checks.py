@@ -125,7 +125,7 @@ def check_rigid_not_on_held_edge(scene, where, body):
              ("top", 1, 1, gravity[1] > 0.0, grid.origin[1] + grid.size[1] - high[1]))
     for edge, axis, side, pulled, gap in edges:
         kind = getattr(grid.boundaries, edge)
-        if pulled and kind != "free" and gap < grid.cell and not held_by_another(scene, body, axis, side):
+        if pulled and kind != "free" and gap < grid.cell and not held_by_another(scene, body, (low, high), axis, side):
             raise SceneError(
                 f"{where} ({body.name!r}) is rigid and stands {gap:g} m from the {edge} grid edge "
                 f"(grid.boundaries.{edge} = {kind!r}), which gravity pulls it towards: rigid bodies ignore the "
@@ -141,11 +141,11 @@ def bounds(region):
             [max(vertex[axis] for vertex in vertices) for axis in (0, 1)])
 
 
-def held_by_another(scene, body, axis, side):
-    """Whether another body lies between `body` and the grid edge on `side` (-1 low, +1 high)
-    of `axis`: its extent along the edge overlaps the body's and it reaches further towards
-    the edge than the body does."""
-    low, high = bounds(body.region)
+def held_by_another(scene, body, box, axis, side):
+    """Whether another body lies between `body` (bounding `box`, (lowest, highest)) and the
+    grid edge on `side` (-1 low, +1 high) of `axis`: its extent along the edge overlaps the
+    body's and it reaches further towards the edge than the body does."""
+    low, high = box
     along = 1 - axis
     for other in scene.bodies:
         if other is body:

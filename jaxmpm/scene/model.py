@@ -108,6 +108,13 @@ class Scene:
                          f"{self.dt / self.stable_dt:.3g} of the stable limit {self.stable_dt:.4g} s")
         return tuple(notes)
 
+    def component_names(self, count: int) -> list[str]:
+        """Names of a probe's `count` components: its axes ("x", "y"; "r", "z" in axisymmetry)
+        for two, else their indices."""
+        if count == 2:
+            return ["r", "z"] if self.geometry == "axisymmetric" else ["x", "y"]
+        return [str(index) for index in range(count)]
+
     @property
     def output_interval(self) -> float:
         return self.output_every if self.output_every is not None else self.duration / 100.0
