@@ -1,7 +1,7 @@
 """Time-step and cell convergence of the headline quantities: the tables of docs/convergence.md.
 
     python benchmarks/convergence_study.py                 # every study (about 25 min on 2 cores)
-    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | subcycled | examples | cells | example_cells | relaxation
+    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | subcycled | examples | cells | example_cells | relaxation | shapes
 
 Each run is a forward run of a scene at some numerics; the quantities are read at every
 output time and the largest relative change between two runs is reported.
@@ -35,6 +35,10 @@ output time and the largest relative change between two runs is reported.
   dt study, and how far each lies from kappa = 1000 (almost pure FLIP). kappa is a numerical
   parameter; this shows how much the answer depends on it and whether that shrinks with the
   cell (about an hour on 2 cores, most of it the wall at h/2).
+- shapes: the retaining wall (to 0.35 s) and the pile (whole run) with each shape function
+  (linear, gimp, bspline2) at cfl 0.4 and 0.2, and with bspline2 at h/2: which shape carries
+  the examples' remaining Delta-t error, and what a smoother shape costs in the cell (about
+  30 minutes, most of it the wall at h/2).
 A study, not a test: it prints markdown tables.
 """
 
@@ -501,8 +505,63 @@ def relaxation_study(names=("retaining_wall", "pile_driving", "column_collapse")
                 print(f"| {name} | {quantity} | {cell:g} | {cells} | {against} | {seconds:.0f} |", flush=True)
 
 
+SHAPES = ("linear", "gimp", "bspline2")
+PILE_CENTIMETRES = np.arange(14, 27) / 100.0     # every cm of the pile's second half
+
+
+def pile_force_every_cm(t, probes):
+    """The pile's head force [N] averaged within half a cell (6.25 mm) of every centimetre of
+    penetration from 14 to 26 cm (PILE_CENTIMETRES)."""
+    force = -(probes["tip_reaction"][:, 1] + probes["shaft_reaction"][:, 1])
+    depth = -probes["penetration"][:, 1]
+    return np.asarray([float(force[np.abs(depth - d) <= 0.00625].mean()) for d in PILE_CENTIMETRES])
+
+
+def shapes_study(finer_cell=True):
+    """The retaining wall (to 0.35 s) and the pile (its whole run) at their shipped cell and
+    relaxation with each shape function of SHAPES, at cfl 0.4 and 0.2; and with bspline2 at
+    h/2 (cfl 0.4). Where the examples' remaining Delta-t error lives, and what a smoother
+    shape costs in the cell."""
+    import jaxmpm
+
+    print("\n### The examples' Delta-t change with each shape function\n")
+    print("Wall: rotation every 0.05 s to 0.35 s. Pile: head force every cm from 14 to 26 cm of "
+          "penetration (and their mean). Change: largest over the outputs against the largest value "
+          "(in brackets against each output's own).\n")
+    print("| example | quantity | shape | cell [m] | at cfl 0.4 (last) | at cfl 0.2 (last) | change 0.4 → 0.2 | mean 0.4 → 0.2 | runs [s] |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    cases = [("retaining_wall", 0.35), ("pile_driving", None)]
+    for name, duration in cases:
+        base = jaxmpm.load_scene(ROOT / "examples" / f"{name}.toml")
+        if duration is not None:
+            base = base.with_value("scene.duration", duration)
+        runs = [(shape, base.grid.cell, (0.4, 0.2)) for shape in SHAPES]
+        if finer_cell:
+            runs.append(("bspline2", base.grid.cell / 2, (0.4,)))
+        for shape, cell, cfls in runs:
+            found, seconds = [], 0.0
+            for cfl in cfls:
+                scene = base.with_value("numerics.shape", shape).with_value("grid.cell", cell).with_value("scene.cfl", cfl)
+                t, probes, _, spent = run(scene)
+                seconds += spent
+                if name == "pile_driving":
+                    found.append(pile_force_every_cm(t, probes))
+                else:
+                    found.append(np.degrees(at_times(t, probes["rotation"][:, 0], np.arange(0.05, duration + 1e-4, 0.05))))
+            quantity = "head force 14–26 cm [N]" if name == "pile_driving" else "rotation [°]"
+            if len(found) == 1:
+                print(f"| {name} | {quantity} | {shape} | {cell:g} | {found[0][-1]:.4g} (mean {found[0].mean():.4g}) | | | | {seconds:.0f} |",
+                      flush=True)
+                continue
+            coarse, fine = found
+            mean = 100 * (fine.mean() - coarse.mean()) / abs(fine.mean())
+            print(f"| {name} | {quantity} | {shape} | {cell:g} | {coarse[-1]:.4g} (mean {coarse.mean():.4g}) | "
+                  f"{fine[-1]:.4g} (mean {fine.mean():.4g}) | {100 * relative_change(coarse, fine):.2f} % "
+                  f"({100 * own_change(coarse, fine):.2f} %) | {mean:+.2f} % | {seconds:.0f} |", flush=True)
+
+
 STUDIES = {"wall": wall_study, "stiff": stiff_study, "subcycled": subcycled_study, "examples": examples_study, "cells": cells_study,
-           "example_cells": example_cells_study, "relaxation": relaxation_study}
+           "example_cells": example_cells_study, "relaxation": relaxation_study, "shapes": shapes_study}
 
 
 def main():

@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmpm.physics.contact import interface_impulse, interface_normals
+from jaxmpm.physics.contact import interface_impulse, interface_normals, unit
 
 NEWTON_ITERATIONS = 3   # 2-3 reach round-off (the same wall motion as 8, bit for bit or within
                         # 1e-12) on retaining_wall, the wall twin and the small wall of docs/convergence.md
@@ -366,6 +366,35 @@ def outline_now(block, state, dtype):
     corners = jnp.asarray(block.outline, dtype)
     centre = jnp.asarray(block.outline_centre, dtype)
     return KINDS[block.kinematics].outline_now(block, state, corners, centre)
+
+
+def outline_normals(corners, positions):
+    """Outward unit normals (..., 2) of a convex outline (K, 2) (corners counter-clockwise) at
+    `positions` (..., 2): inside or on the outline, the normal of the edge with the largest
+    signed distance n_e . (x - a_e) (the nearest edge); outside, (x - p) / |x - p| with p the
+    nearest point of the outline (so the normal turns smoothly round a corner). Finite, with
+    finite gradients, everywhere (the outside branch is never taken at |x - p| = 0)."""
+    edges = jnp.roll(corners, -1, axis=0) - corners
+    squared_lengths = edges[:, 0] ** 2 + edges[:, 1] ** 2
+    normals = jnp.stack([edges[:, 1], -edges[:, 0]], axis=-1) / jnp.sqrt(squared_lengths)[:, None]
+    offsets = positions[..., None, :] - corners                                # (..., K, 2)
+    distances = jnp.sum(offsets * normals, axis=-1)                            # (..., K)
+    inside = jnp.max(distances, axis=-1) <= 0.0
+    nearest_edge = normals[jnp.argmax(distances, axis=-1)]
+    along = jnp.clip(jnp.sum(offsets * edges, axis=-1) / squared_lengths, 0.0, 1.0)
+    gaps = offsets - along[..., None] * edges                                  # x - p for each edge
+    nearest = jnp.argmin(jnp.sum(gaps * gaps, axis=-1), axis=-1)
+    gap = jnp.take_along_axis(gaps, nearest[..., None, None], axis=-2)[..., 0, :]
+    away = jnp.where(inside[..., None], nearest_edge, gap)                    # |gap| > 0 where used
+    return jnp.where(inside[..., None], nearest_edge, unit(away))
+
+
+def prescribed_outline_normals(structure, state, positions):
+    """{field: (nx, ny, 2)} outward normals at the nodes `positions` of every prescribed body
+    with a convex outline, from its outline at the state's time (`outline_normals`): the
+    normal its contacts use (`contact.interface_normals`)."""
+    return {block.field: outline_normals(outline_now(block, state, positions.dtype), positions)
+            for block in kinematic_blocks(structure) if block.kinematics == "prescribed" and block.outline is not None}
 
 
 def outline_pairs(structure):
