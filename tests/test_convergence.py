@@ -323,6 +323,20 @@ def test_a_prescribed_bodys_outline_gives_its_exact_outward_normal():
         gradient = jax.grad(spread)(jnp.zeros(2), jnp.asarray(position))
         assert np.all(np.isfinite(np.asarray(gradient)))
 
+    # An edge on a held grid edge (a pile's side on the axis) is no surface: the body goes on
+    # as its mirror image there. A point inside, nearest that edge, takes the nearest other one's.
+    from jaxmpm.physics.bodies import mirrored_edges
+    from jaxmpm.physics.grid import GridLayout
+
+    layout = GridLayout(origin=(0.0, 0.0), cell=0.25, cells=(8, 8))
+    mirrored = mirrored_edges(corners, layout, Boundaries("slip", "slip", "fixed", "free"))
+    np.testing.assert_array_equal(np.asarray(mirrored), [True, False, False, True])      # bottom and left
+    np.testing.assert_array_equal(np.asarray(mirrored_edges(corners, layout, Boundaries("free", "slip", "free", "free"))),
+                                  [False, False, False, False])
+    inside_near_the_axis = jnp.asarray([[0.05, 0.8], [0.8, 0.05]])
+    np.testing.assert_allclose(np.asarray(outline_normals(corners, inside_near_the_axis, mirrored)), [[0, 1], [1, 0]],
+                               atol=1e-12)
+
 
 def test_outlines_are_convex_and_counter_clockwise():
     from jaxmpm.physics.bodies import convex_outline
