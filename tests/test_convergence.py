@@ -283,12 +283,67 @@ def test_no_sand_point_ends_inside_a_punch(monkeypatch):
     # Grid contact acts on nodes; the points under the punch, interpolating between contact
     # nodes and slower ones below, close on its face and enter it (the pile tip of
     # examples/pile_driving.toml held 16). bodies.keep_points_outside puts them back on the
-    # punch's outline: none is inside after 2.5 cells of penetration. Without it, some are.
-    assert points_inside_punch(Simulation(punch())) == 0
+    # punch's outline: none is inside after 5 cells of penetration. Without it, some are
+    # (4; over the first 2.5 cells the grid contact alone, with the punch's outline normal,
+    # kept them out).
+    assert points_inside_punch(Simulation(punch(0.5))) == 0
     import jaxmpm.physics.bodies
 
     monkeypatch.setattr(jaxmpm.physics.bodies, "outline_pairs", lambda structure: ())
-    assert points_inside_punch(Simulation(punch())) > 0
+    assert points_inside_punch(Simulation(punch(0.5))) > 0
+
+
+def test_a_prescribed_bodys_outline_gives_its_exact_outward_normal():
+    # bodies.outline_normals on the unit square (counter-clockwise): inside or on the outline
+    # the nearest edge's normal, outside the direction from the nearest point of the outline
+    # (a corner's diagonal beyond it). Geometry, exact to round-off. Values and gradients
+    # (with respect to the corners, i.e. the body's motion) finite on the outline and at a
+    # corner, where the outside branch would divide by zero.
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmpm.physics.bodies import outline_normals
+
+    corners = jnp.asarray([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    at = jnp.asarray([
+        [0.5, 0.1], [0.9, 0.5], [0.5, 0.8], [0.2, 0.5],      # inside, nearest the bottom, right, top, left edge
+        [0.5, 0.0], [1.0, 0.3],                              # on the bottom and the right edge
+        [0.5, -0.3], [1.4, 0.6],                             # outside, beside the bottom and the right edge
+        [1.3, 1.3], [-0.2, -0.6],                            # beyond the top-right corner, below the bottom-left one
+    ])
+    diagonal = math.sqrt(0.5)
+    towards = np.array([-0.2, -0.6]) / math.hypot(0.2, 0.6)
+    expected = [[0, -1], [1, 0], [0, 1], [-1, 0], [0, -1], [1, 0], [0, -1], [1, 0], [diagonal, diagonal], towards]
+    np.testing.assert_allclose(np.asarray(outline_normals(corners, at)), expected, atol=1e-12)
+
+    def spread(shift, position):
+        return jnp.sum(outline_normals(corners + shift, position) * jnp.asarray([0.3, 0.7]))
+
+    for position in ([0.5, 0.0], [1.0, 1.0], [1.3, 1.3]):
+        gradient = jax.grad(spread)(jnp.zeros(2), jnp.asarray(position))
+        assert np.all(np.isfinite(np.asarray(gradient)))
+
+    # An outline moved by its points' mean carries round-off (a slab's top at y = -2.9e-17 m in
+    # examples/column_collapse.toml): a node on it is outside by that much, and the direction
+    # of x - p is round-off. It must take the edge's normal (it took one 75 degrees off the
+    # face, and the column's sand sank onto the slab and was thrown off the grid at 0.26 s).
+    slab = jnp.asarray([[0.0, -0.01], [0.6, -0.01], [0.6, 0.0], [0.0, 0.0]]) + jnp.asarray([1e-17, -2.9e-17])
+    top_nodes = jnp.stack([jnp.linspace(0.05, 0.55, 101), jnp.zeros(101)], axis=-1)
+    np.testing.assert_allclose(np.asarray(outline_normals(slab, top_nodes)), np.tile([0.0, 1.0], (101, 1)), atol=1e-6)
+
+    # An edge on a held grid edge (a pile's side on the axis) is no surface: the body goes on
+    # as its mirror image there. A point inside, nearest that edge, takes the nearest other one's.
+    from jaxmpm.physics.bodies import mirrored_edges
+    from jaxmpm.physics.grid import GridLayout
+
+    layout = GridLayout(origin=(0.0, 0.0), cell=0.25, cells=(8, 8))
+    mirrored = mirrored_edges(corners, layout, Boundaries("slip", "slip", "fixed", "free"))
+    np.testing.assert_array_equal(np.asarray(mirrored), [True, False, False, True])      # bottom and left
+    np.testing.assert_array_equal(np.asarray(mirrored_edges(corners, layout, Boundaries("free", "slip", "free", "free"))),
+                                  [False, False, False, False])
+    inside_near_the_axis = jnp.asarray([[0.05, 0.8], [0.8, 0.05]])
+    np.testing.assert_allclose(np.asarray(outline_normals(corners, inside_near_the_axis, mirrored)), [[0, 1], [1, 0]],
+                               atol=1e-12)
 
 
 def test_outlines_are_convex_and_counter_clockwise():

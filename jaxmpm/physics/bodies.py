@@ -40,8 +40,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmpm.physics.contact import interface_impulse, interface_normals
+from jaxmpm.physics.contact import interface_impulse, interface_normals, unit
 
+OUTLINE_RESOLUTION = 1e-9    # of an outline's longest edge: nearer than that, a position counts as on it
 NEWTON_ITERATIONS = 3   # 2-3 reach round-off (the same wall motion as 8, bit for bit or within
                         # 1e-12) on retaining_wall, the wall twin and the small wall of docs/convergence.md
 
@@ -366,6 +367,63 @@ def outline_now(block, state, dtype):
     corners = jnp.asarray(block.outline, dtype)
     centre = jnp.asarray(block.outline_centre, dtype)
     return KINDS[block.kinematics].outline_now(block, state, corners, centre)
+
+
+def outline_normals(corners, positions, mirrored=None):
+    """Outward unit normals (..., 2) of a convex outline (K, 2) (corners counter-clockwise) at
+    `positions` (..., 2): inside or on the outline, the normal of the edge with the largest
+    signed distance n_e . (x - a_e) (the nearest edge); outside, (x - p) / |x - p| with p the
+    nearest point of the outline (so the normal turns smoothly round a corner). A position
+    outside by less than `OUTLINE_RESOLUTION` of the outline's size counts as on it: a moved
+    outline's round-off (~1e-17 m) would otherwise set the direction of x - p (a slab's top
+    nodes then pointed 75 degrees off its face). `mirrored` (K,) bool marks edges that lie on a
+    held grid edge (`mirrored_edges`): the body continues beyond them as its mirror image, so
+    they are no surface and are left out. Finite, with finite gradients, everywhere."""
+    edges = jnp.roll(corners, -1, axis=0) - corners
+    squared_lengths = edges[:, 0] ** 2 + edges[:, 1] ** 2
+    normals = jnp.stack([edges[:, 1], -edges[:, 0]], axis=-1) / jnp.sqrt(squared_lengths)[:, None]
+    offsets = positions[..., None, :] - corners                                # (..., K, 2)
+    distances = jnp.sum(offsets * normals, axis=-1)                            # (..., K)
+    along = jnp.clip(jnp.sum(offsets * edges, axis=-1) / squared_lengths, 0.0, 1.0)
+    gaps = offsets - along[..., None] * edges                                  # x - p for each edge
+    gap_squares = jnp.sum(gaps * gaps, axis=-1)
+    if mirrored is not None:
+        distances = jnp.where(mirrored, -jnp.inf, distances)
+        gap_squares = jnp.where(mirrored, jnp.inf, gap_squares)
+    nearest_edge = normals[jnp.argmax(distances, axis=-1)]
+    nearest = jnp.argmin(gap_squares, axis=-1)
+    gap = jnp.take_along_axis(gaps, nearest[..., None, None], axis=-2)[..., 0, :]
+    resolved = OUTLINE_RESOLUTION**2 * jnp.max(squared_lengths)
+    outside = (jnp.max(distances, axis=-1) > 0.0) & (jnp.sum(gap * gap, axis=-1) > resolved)
+    away = jnp.where(outside[..., None], gap, nearest_edge)                  # |gap| > 0 where used
+    return jnp.where(outside[..., None], unit(away), nearest_edge)
+
+
+def mirrored_edges(corners, layout, boundaries):
+    """(K,) bool: the outline's edges that lie on a fixed or slip grid edge (both ends within
+    1e-9 of a cell of it), e.g. a pile's side on the axis in axisymmetry."""
+    ends = jnp.stack([corners, jnp.roll(corners, -1, axis=0)], axis=1)        # (K, 2 ends, 2)
+    tolerance = 1e-9 * layout.cell
+    lines = {"left": (0, layout.origin[0]), "right": (0, layout.origin[0] + layout.cells[0] * layout.cell),
+             "bottom": (1, layout.origin[1]), "top": (1, layout.origin[1] + layout.cells[1] * layout.cell)}
+    mirrored = jnp.zeros(len(corners), bool)
+    for edge, (axis, at) in lines.items():
+        if getattr(boundaries, edge) != "free":
+            mirrored = mirrored | jnp.all(jnp.abs(ends[:, :, axis] - at) <= tolerance, axis=1)
+    return mirrored
+
+
+def prescribed_outline_normals(structure, state, positions):
+    """{field: (nx, ny, 2)} outward normals at the nodes `positions` of every prescribed body
+    with a convex outline, from its outline at the state's time (`outline_normals`, its edges
+    on held grid edges left out): the normal its contacts use (`contact.interface_normals`)."""
+    found = {}
+    for block in kinematic_blocks(structure):
+        if block.kinematics != "prescribed" or block.outline is None:
+            continue
+        corners = outline_now(block, state, positions.dtype)
+        found[block.field] = outline_normals(corners, positions, mirrored_edges(corners, structure.layout, structure.boundaries))
+    return found
 
 
 def outline_pairs(structure):

@@ -64,7 +64,8 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from jaxmpm.physics.bodies import (
-    Grid, impose_body_motions, keep_points_outside, move_kinematic_bodies, received_impulses,
+    Grid, impose_body_motions, keep_points_outside, move_kinematic_bodies, node_positions, prescribed_outline_normals,
+    received_impulses,
 )
 from jaxmpm.physics.contact import Interface, resolve_interfaces
 from jaxmpm.physics.subcycling import alone, correct, predict, put_back, subcycled_blocks
@@ -496,8 +497,12 @@ def make_step(structure: Structure):
                                                     prediction.motions)
         impulses = []
         if structure.interfaces:
+            outlines = None
+            if any(interface.normal_from is not None for interface in structure.interfaces):
+                outlines = prescribed_outline_normals(structure, state, node_positions(layout, particles.x.dtype))
             velocity_new, impulses = jax.named_call(resolve_interfaces, name="contact")(
-                structure.interfaces, nodes.mass, velocity_new, nodes.mass_gradient, frictions, nodes.mass > floor
+                structure.interfaces, nodes.mass, velocity_new, nodes.mass_gradient, frictions, nodes.mass > floor,
+                outlines
             )
             velocity_new = constrain(velocity_new)
         ended = correct(steps_alone, params, structure, subcycled, prediction, motions,
