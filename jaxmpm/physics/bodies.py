@@ -374,7 +374,7 @@ def outline_normals(corners, positions, mirrored=None):
     `positions` (..., 2): inside or on the outline, the normal of the edge with the largest
     signed distance n_e . (x - a_e) (the nearest edge); outside, (x - p) / |x - p| with p the
     nearest point of the outline (so the normal turns smoothly round a corner). A position
-    outside by less than `OUTLINE_RESOLUTION` of the outline's size counts as on it: a moved
+    outside by less than `OUTLINE_RESOLUTION` of the longest edge counts as on it: a moved
     outline's round-off (~1e-17 m) would otherwise set the direction of x - p (a slab's top
     nodes then pointed 75 degrees off its face). `mirrored` (K,) bool marks edges that lie on a
     held grid edge (`mirrored_edges`): the body continues beyond them as its mirror image, so
@@ -393,8 +393,8 @@ def outline_normals(corners, positions, mirrored=None):
     nearest_edge = normals[jnp.argmax(distances, axis=-1)]
     nearest = jnp.argmin(gap_squares, axis=-1)
     gap = jnp.take_along_axis(gaps, nearest[..., None, None], axis=-2)[..., 0, :]
-    resolved = OUTLINE_RESOLUTION**2 * jnp.max(squared_lengths)
-    outside = (jnp.max(distances, axis=-1) > 0.0) & (jnp.sum(gap * gap, axis=-1) > resolved)
+    resolution_squared = OUTLINE_RESOLUTION**2 * jnp.max(squared_lengths)
+    outside = (jnp.max(distances, axis=-1) > 0.0) & (jnp.sum(gap * gap, axis=-1) > resolution_squared)
     away = jnp.where(outside[..., None], gap, nearest_edge)                  # |gap| > 0 where used
     return jnp.where(outside[..., None], unit(away), nearest_edge)
 
