@@ -509,12 +509,12 @@ SHAPES = ("linear", "gimp", "bspline2")
 PILE_CENTIMETRES = np.arange(14, 27) / 100.0     # every cm of the pile's second half
 
 
-def pile_force_every_cm(t, probes):
-    """The pile's head force [N] averaged within half a cell (6.25 mm) of every centimetre of
-    penetration from 14 to 26 cm (PILE_CENTIMETRES)."""
+def pile_force_every_cm(t, probes, centimetres=PILE_CENTIMETRES):
+    """The pile's head force [N] averaged within half a cell (6.25 mm) of every one of
+    `centimetres` of penetration [m] (by default 14 to 26 cm)."""
     force = -(probes["tip_reaction"][:, 1] + probes["shaft_reaction"][:, 1])
     depth = -probes["penetration"][:, 1]
-    return np.asarray([float(force[np.abs(depth - d) <= 0.00625].mean()) for d in PILE_CENTIMETRES])
+    return np.asarray([float(force[np.abs(depth - d) <= 0.00625].mean()) for d in centimetres])
 
 
 def shapes_study(finer_cell=True):
