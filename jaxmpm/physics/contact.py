@@ -24,8 +24,9 @@ at a node inside or on the outline the normal of its nearest edge, outside it th
 from the nearest point of the outline, rounded at corners). The normal of its points' mass
 gradient, used for other outlines, turns each time a row of the body's points crosses a cell
 edge; a pile driven through many cells then met sand with a normal that flickered, and its
-force shifted by up to 3 % when the step was halved (docs/convergence.md). Between two free bodies, and between a free and
-a rigid body (the limit of a stiff free one, which must behave the same), it is the mean of
+force shifted by up to 3 % when the step was halved (docs/convergence.md). Between two free
+bodies, and between a free and a rigid body (the limit of a stiff free one, which must behave
+the same), it is the mean of
 their own outward normals, each weighted by its field's mass at the node: where one body only
 grazes a node (a corner, a thin edge, a body just arriving) its normal is poorly resolved and
 its mass there is small, so the well-covered body's normal decides. Both choices are
