@@ -344,6 +344,21 @@ def test_a_prescribed_bodys_outline_gives_its_exact_outward_normal():
     inside_near_the_axis = jnp.asarray([[0.05, 0.8], [0.8, 0.05]])
     np.testing.assert_allclose(np.asarray(outline_normals(corners, inside_near_the_axis, mirrored)), [[0, 1], [1, 0]],
                                atol=1e-12)
+    # ... also when round-off puts the node beyond that edge (the pile's outline, moved by its
+    # points' mean, had its axis side at x = 3.5e-18 m): it is not outside the body. It took
+    # the direction to the nearest surface edge, (0, -1) instead of (0, 1) here.
+    on_the_axis = jnp.asarray([[0.0, 0.8]])
+    for shift in ([3.5e-18, 0.0], [-3.5e-18, 0.0]):
+        np.testing.assert_allclose(np.asarray(outline_normals(corners + jnp.asarray(shift), on_the_axis, mirrored)),
+                                   [[0.0, 1.0]], atol=1e-12)
+
+    # A node on a corner is as near one edge as the other: it takes their mean normal (the
+    # bisector), whatever the round-off. It took the normal of whichever edge round-off made
+    # nearer, 90 degrees apart (a node on a pile tip's corner closed on the pile or not by
+    # the sign of 1e-18 m, and a pile split in two differed from the whole one).
+    for shift in ([1e-17, -1e-17], [-1e-17, 1e-17], [0.0, 0.0], [1e-17, 1e-17]):
+        np.testing.assert_allclose(np.asarray(outline_normals(corners + jnp.asarray(shift), jnp.asarray([[1.0, 0.0]]))),
+                                   [[diagonal, -diagonal]], atol=1e-12)
 
 
 def test_outlines_are_convex_and_counter_clockwise():

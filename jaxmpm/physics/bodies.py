@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmpm.physics.contact import interface_impulse, interface_normals, unit
+from jaxmpm.physics.contact import interface_impulse, interface_normals, safe_norm, unit
 
 OUTLINE_RESOLUTION = 1e-9    # of an outline's longest edge: nearer than that, a position counts as on it
 NEWTON_ITERATIONS = 3   # 2-3 reach round-off (the same wall motion as 8, bit for bit or within
@@ -369,16 +369,17 @@ def outline_now(block, state, dtype):
     return KINDS[block.kinematics].outline_now(block, state, corners, centre)
 
 
-def outline_normals(corners, positions, mirrored=None):
-    """Outward unit normals (..., 2) of a convex outline (K, 2) (corners counter-clockwise) at
-    `positions` (..., 2): inside or on the outline, the normal of the edge with the largest
-    signed distance n_e . (x - a_e) (the nearest edge); outside, (x - p) / |x - p| with p the
-    nearest point of the outline (so the normal turns smoothly round a corner). A position
-    outside by less than `OUTLINE_RESOLUTION` of the longest edge counts as on it: a moved
-    outline's round-off (~1e-17 m) would otherwise set the direction of x - p (a slab's top
-    nodes then pointed 75 degrees off its face). `mirrored` (K,) bool marks edges that lie on a
-    held grid edge (`mirrored_edges`): the body continues beyond them as its mirror image, so
-    they are no surface and are left out. Finite, with finite gradients, everywhere."""
+def outline_distances(corners, positions, excluded=None):
+    """(signed distance (...), outward unit normal (..., 2)) of a convex outline (K, 2) (corners
+    counter-clockwise) at `positions` (..., 2): inside or on the outline, the largest signed
+    distance n_e . (x - a_e) and the normal of that edge (the nearest); outside, |x - p| and
+    (x - p) / |x - p| with p the nearest point of the outline (so the normal turns smoothly
+    round a corner). A position outside by less than `OUTLINE_RESOLUTION` of the longest edge
+    counts as on it: a moved outline's round-off (~1e-17 m) would otherwise set the direction
+    of x - p (a slab's top nodes then pointed 75 degrees off its face). `excluded` (K,) bool
+    marks edges that are no surface, left out: edges on a held grid edge (`mirrored_edges`,
+    the body continues beyond them as its mirror image) and edges joined to another prescribed
+    body moving with it (`joined_edges`). Finite, with finite gradients, everywhere."""
     edges = jnp.roll(corners, -1, axis=0) - corners
     squared_lengths = edges[:, 0] ** 2 + edges[:, 1] ** 2
     normals = jnp.stack([edges[:, 1], -edges[:, 0]], axis=-1) / jnp.sqrt(squared_lengths)[:, None]
@@ -387,16 +388,48 @@ def outline_normals(corners, positions, mirrored=None):
     along = jnp.clip(jnp.sum(offsets * edges, axis=-1) / squared_lengths, 0.0, 1.0)
     gaps = offsets - along[..., None] * edges                                  # x - p for each edge
     gap_squares = jnp.sum(gaps * gaps, axis=-1)
-    if mirrored is not None:
-        distances = jnp.where(mirrored, -jnp.inf, distances)
-        gap_squares = jnp.where(mirrored, jnp.inf, gap_squares)
-    nearest_edge = normals[jnp.argmax(distances, axis=-1)]
+    resolution = OUTLINE_RESOLUTION * jnp.sqrt(jnp.max(squared_lengths))
+    outside = jnp.max(distances, axis=-1) > resolution     # beyond an edge, excluded ones included
+    if excluded is not None:
+        distances = jnp.where(excluded, -jnp.inf, distances)
+        gap_squares = jnp.where(excluded, jnp.inf, gap_squares)
+    depth = jnp.max(distances, axis=-1)
+    tied = distances >= depth[..., None] - resolution                         # nearest edges: two at a corner
+    nearest_edge = unit(jnp.sum(jnp.where(tied[..., None], normals, 0.0), axis=-2))
     nearest = jnp.argmin(gap_squares, axis=-1)
     gap = jnp.take_along_axis(gaps, nearest[..., None, None], axis=-2)[..., 0, :]
-    resolution_squared = OUTLINE_RESOLUTION**2 * jnp.max(squared_lengths)
-    outside = (jnp.max(distances, axis=-1) > 0.0) & (jnp.sum(gap * gap, axis=-1) > resolution_squared)
     away = jnp.where(outside[..., None], gap, nearest_edge)                  # |gap| > 0 where used
-    return jnp.where(outside[..., None], unit(away), nearest_edge)
+    return jnp.where(outside, safe_norm(away), depth), jnp.where(outside[..., None], unit(away), nearest_edge)
+
+
+def outline_normals(corners, positions, excluded=None):
+    """The outward unit normals (..., 2) of `outline_distances`."""
+    return outline_distances(corners, positions, excluded)[1]
+
+
+def joined_edges(corners, others):
+    """(K,) bool: the edges of a convex outline (K, 2) that lie on an edge of one of the
+    convex outlines `others` and face it (both ends within `OUTLINE_RESOLUTION` of that edge's
+    length from it, opposite normals): where two prescribed bodies that move together meet
+    (a pile's tip and its shaft), that edge is inside the structure and no surface (numpy, at
+    setup)."""
+    corners = np.asarray(corners, float)
+    edges = np.roll(corners, -1, axis=0) - corners
+    joined = np.zeros(len(corners), bool)
+    for other in others:
+        other = np.asarray(other, float)
+        other_edges = np.roll(other, -1, axis=0) - other
+        for k, (start, edge) in enumerate(zip(corners, edges)):
+            for base, along in zip(other, other_edges):
+                length = np.hypot(*along)
+                ends = np.stack([start, start + edge]) - base
+                fraction = ends @ along / length**2
+                off = np.abs(ends[:, 0] * along[1] - ends[:, 1] * along[0]) / length
+                facing = edge @ along < 0.0
+                tolerance = OUTLINE_RESOLUTION
+                if facing and np.all(off <= tolerance * length) and np.all((fraction >= -tolerance) & (fraction <= 1 + tolerance)):
+                    joined[k] = True
+    return joined
 
 
 def mirrored_edges(corners, layout, boundaries):
@@ -413,16 +446,36 @@ def mirrored_edges(corners, layout, boundaries):
     return mirrored
 
 
+def no_surface(block, corners, structure):
+    """(K,) bool: the edges of a body's outline `corners` that are no surface: on a held grid
+    edge (`mirrored_edges`) or joined to another prescribed body (`BodyBlock.joined`)."""
+    excluded = mirrored_edges(corners, structure.layout, structure.boundaries)
+    return excluded if block.joined is None else excluded | jnp.asarray(block.joined)
+
+
 def prescribed_outline_normals(structure, state, positions):
     """{field: (nx, ny, 2)} outward normals at the nodes `positions` of every prescribed body
-    with a convex outline, from its outline at the state's time (`outline_normals`, its edges
-    on held grid edges left out): the normal its contacts use (`contact.interface_normals`)."""
-    found = {}
+    with a convex outline, from its outline at the state's time (`outline_distances`, its edges
+    on held grid edges and its joined edges left out): the normal its contacts use
+    (`contact.interface_normals`). Bodies joined to it (`BodyBlock.partners`: prescribed bodies
+    that share an edge with it and move with it) make one surface with it: at each node the
+    normal is that of the nearest of them (smallest signed distance), the normal of their
+    union, so that sand flowing past a pile's tip onto its shaft meets the pile's side, not
+    the shaft's lower end."""
+    measured = {}
     for block in kinematic_blocks(structure):
         if block.kinematics != "prescribed" or block.outline is None:
             continue
         corners = outline_now(block, state, positions.dtype)
-        found[block.field] = outline_normals(corners, positions, mirrored_edges(corners, structure.layout, structure.boundaries))
+        measured[block.field] = (block, outline_distances(corners, positions, no_surface(block, corners, structure)))
+    found = {}
+    for field, (block, (distance, normal)) in measured.items():
+        for partner in block.partners:
+            other_distance, other_normal = measured[partner][1]
+            nearer = other_distance < distance
+            distance = jnp.where(nearer, other_distance, distance)
+            normal = jnp.where(nearer[..., None], other_normal, normal)
+        found[field] = normal
     return found
 
 
@@ -455,8 +508,9 @@ def keep_points_outside(state, structure, motions):
     enters it, where the body's normal is undefined and nothing pushes it out (16 points
     ended inside the pile tip of examples/pile_driving.toml). The body's outline is known
     exactly (its scene region, moved with it), so the point is moved to the nearest edge of
-    the convex outline, x <- x - d n (d = max_e n_e . (x - a_e) < 0, the edge it is nearest),
-    and v <- v - min(0, (v - v_b) . n) n with v_b the body's velocity there."""
+    the convex outline, x <- x - d n (d = max_e n_e . (x - a_e) < 0, the edge it is nearest,
+    edges that are no surface (`no_surface`) left out), and v <- v - min(0, (v - v_b) . n) n
+    with v_b the body's velocity there."""
     particles = state.particles
     x, v = particles.x, particles.v
     for free, body in outline_pairs(structure):
@@ -467,9 +521,10 @@ def keep_points_outside(state, structure, motions):
         points = x[free.points]
         distances = (points[:, None, 0] - corners[None, :, 0]) * normals[None, :, 0] + \
             (points[:, None, 1] - corners[None, :, 1]) * normals[None, :, 1]
+        inside = jnp.max(distances, axis=1) < 0.0
+        distances = jnp.where(no_surface(body, corners, structure), -jnp.inf, distances)
         nearest = jnp.argmax(distances, axis=1)
         depth = jnp.max(distances, axis=1)
-        inside = depth < 0.0
         normal = normals[nearest]
         moved = jnp.where(inside[:, None], points - depth[:, None] * normal, points)
         surface_velocity = KINDS[body.kinematics].velocity_at(motions[body.name], moved, structure.dt)

@@ -57,7 +57,10 @@ class Interface:
     (frictional), None for bonded fields (no slip); kinematic_first / kinematic_second: whether
     that field is a prescribed or rigid body (then it keeps its own velocity); normal_from: the
     field whose own outward normal the contact uses (a prescribed body's), None for the
-    mass-weighted mean of both (`contact_normals`)."""
+    mass-weighted mean of both (`contact_normals`); shared_with: the fields of other parts of
+    the same prescribed structure (`bodies.joined_edges`) whose interfaces with the same free
+    field come later: at a node where several parts have mass, each part takes the share of
+    the impulse that its mass has among them (`part_share`)."""
 
     first: int
     second: int
@@ -65,6 +68,7 @@ class Interface:
     kinematic_first: bool = False
     kinematic_second: bool = False
     normal_from: int | None = None
+    shared_with: tuple[int, ...] = ()
 
 
 def safe_norm(vectors):
@@ -139,6 +143,17 @@ def interface_impulse(interface, mass, velocity, normal, friction, occupied):
     return jnp.where(both[..., None], reduced[..., None] * change, 0.0)
 
 
+def part_share(interface, mass, occupied):
+    """(nx, ny): the fraction of the impulse that the part `normal_from` of a joined structure
+    takes at each node: m_k / (m_k + sum of the later parts' masses). The parts move alike, so
+    the later parts' interfaces then correct the rest of the free field's velocity, each taking
+    its own share, and the whole impulse is that of one body (exactly: the correction is
+    homogeneous in the velocity difference)."""
+    own = jnp.where(occupied[interface.normal_from], mass[interface.normal_from], 0.0)
+    total = own + sum(jnp.where(occupied[part], mass[part], 0.0) for part in interface.shared_with)
+    return jnp.where(total > 0.0, own / jnp.where(total > 0.0, total, 1.0), 1.0)
+
+
 def resolve_interfaces(interfaces, mass, velocity, mass_gradient, frictions, occupied, outline_normals=None):
     """Apply every interface's impulse in turn to the free fields' velocities (`outline_normals`:
     see `interface_normals`).
@@ -154,6 +169,8 @@ def resolve_interfaces(interfaces, mass, velocity, mass_gradient, frictions, occ
             normal = interface_normals(interface, mass, mass_gradient, outline_normals)
         friction = frictions.get(interface.contact)
         impulse = interface_impulse(interface, mass, velocity, normal, friction, occupied)
+        if interface.shared_with:
+            impulse = impulse * part_share(interface, mass, occupied)[..., None]
         if not interface.kinematic_first:
             velocity = velocity.at[interface.first].add(impulse / safe_mass[interface.first])
         if not interface.kinematic_second:

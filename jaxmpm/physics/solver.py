@@ -90,6 +90,10 @@ class BodyBlock:
     velocity table's times [s] (None: a constant velocity); outline: a prescribed or rigid
     body's region as convex polygon corners, counter-clockwise, at t = 0 (None: not convex, or a
     free body), and outline_centre the mean of its points then (`bodies.keep_points_outside`);
+    joined: its outline's edges that lie on another prescribed body moving with it
+    (`bodies.joined_edges`; None: none), and partners the fields of those bodies: together
+    they are one structure (a pile's tip and shaft), whose contacts take the normal of their
+    union (`bodies.prescribed_outline_normals`);
     memory: the fraction of its own velocity update its points keep per step, where it differs
     from the scene's `Structure.memory` (`body_memory`); substeps: the steps a free body takes
     of its own within each step (> 1: subcycled, `subcycling`)."""
@@ -104,6 +108,8 @@ class BodyBlock:
     times: tuple[float, ...] | None = None
     outline: tuple | None = None
     outline_centre: tuple[float, float] | None = None
+    joined: tuple[bool, ...] | None = None
+    partners: tuple[int, ...] = ()
     memory: float | None = None
     substeps: int = 1
 

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from jaxmpm.physics.bodies import convex_outline
+from jaxmpm.physics.bodies import convex_outline, joined_edges
 from jaxmpm.running.budget import check_memory
 from jaxmpm.errors import SceneError
 from jaxmpm.physics.grid import GridLayout
@@ -93,6 +93,50 @@ def velocity_fields(scene: Scene):
     return field, count, tuple(interfaces)
 
 
+def joined_structures(scene: Scene) -> dict:
+    """{body: (joined edges (K,) bool, the other parts' names)} for each prescribed body with a
+    convex outline: prescribed bodies that move together (the same velocity and velocity
+    table) and share an edge (`bodies.joined_edges`) are parts of one structure, e.g. a pile's
+    tip and shaft split to read their forces apart; parts joined through others belong to it too."""
+    moving = [body for body in scene.bodies if body.kinematics.type == "prescribed"]
+    outlines = {body.name: convex_outline(body.region.vertices) for body in moving}
+    motion = {body.name: (np.asarray(body.kinematics.velocity, float).tolist(), body.kinematics.time) for body in moving}
+    named = [name for name, outline in outlines.items() if outline is not None]
+
+    def meet(a, b):
+        return motion[a] == motion[b] and (joined_edges(outlines[a], [outlines[b]]).any()
+                                           or joined_edges(outlines[b], [outlines[a]]).any())
+
+    neighbours = {a: [b for b in named if b != a and meet(a, b)] for a in named}
+    found = {}
+    for name in named:
+        parts, frontier = {name}, [name]
+        while frontier:
+            for other in neighbours[frontier.pop()]:
+                if other not in parts:
+                    parts.add(other)
+                    frontier.append(other)
+        edges = joined_edges(outlines[name], [outlines[other] for other in neighbours[name]])
+        found[name] = (tuple(bool(edge) for edge in edges), tuple(other for other in named if other in parts - {name}))
+    return found
+
+
+def share_among_parts(interfaces, parts_of_field) -> tuple:
+    """The interfaces, each between a free field and a part of a joined structure
+    (`joined_structures`; parts_of_field {field: the other parts' fields}) told which of the
+    other parts' interfaces with the same free field come after it (`Interface.shared_with`)."""
+    shared = []
+    for index, interface in enumerate(interfaces):
+        part = interface.normal_from
+        free = interface.second if part == interface.first else interface.first
+        later = tuple(
+            other.normal_from for other in interfaces[index + 1:]
+            if other.normal_from in parts_of_field.get(part, ()) and free in (other.first, other.second)
+        )
+        shared.append(dataclasses.replace(interface, shared_with=later) if later else interface)
+    return tuple(shared)
+
+
 class Simulation:
     """The differentiable handle on a scene. See the module docstring."""
 
@@ -123,6 +167,13 @@ class Simulation:
                       substeps=substeps(scene, body, self.dt))
             for body, (start, stop) in zip(scene.bodies, self.seeds.slices)
         )
+        structures = joined_structures(scene)
+        blocks = tuple(
+            dataclasses.replace(block, joined=structures[block.name][0],
+                                partners=tuple(field[other] for other in structures[block.name][1]))
+            if block.name in structures else block for block in blocks
+        )
+        interfaces = share_among_parts(interfaces, {block.field: block.partners for block in blocks if block.partners})
         self.structure = Structure(
             layout=GridLayout(scene.grid.origin, scene.grid.cell, scene.grid.cells, scene.numerics.shape, scene.numerics.ppc),
             boundaries=scene.grid.boundaries,
