@@ -410,25 +410,22 @@ def outline_normals(corners, positions, excluded=None):
 def joined_edges(corners, others):
     """(K,) bool: the edges of a convex outline (K, 2) that lie on an edge of one of the
     convex outlines `others` and face it (both ends within `OUTLINE_RESOLUTION` of that edge's
-    length from it, opposite normals): where two prescribed bodies that move together meet
+    length from it, opposite directions): where two prescribed bodies that move together meet
     (a pile's tip and its shaft), that edge is inside the structure and no surface (numpy, at
     setup)."""
     corners = np.asarray(corners, float)
-    edges = np.roll(corners, -1, axis=0) - corners
+    ends = np.stack([corners, np.roll(corners, -1, axis=0)], axis=1)            # (K, 2 ends, 2)
     joined = np.zeros(len(corners), bool)
     for other in others:
         other = np.asarray(other, float)
-        other_edges = np.roll(other, -1, axis=0) - other
-        for k, (start, edge) in enumerate(zip(corners, edges)):
-            for base, along in zip(other, other_edges):
-                length = np.hypot(*along)
-                ends = np.stack([start, start + edge]) - base
-                fraction = ends @ along / length**2
-                off = np.abs(ends[:, 0] * along[1] - ends[:, 1] * along[0]) / length
-                facing = edge @ along < 0.0
-                tolerance = OUTLINE_RESOLUTION
-                if facing and np.all(off <= tolerance * length) and np.all((fraction >= -tolerance) & (fraction <= 1 + tolerance)):
-                    joined[k] = True
+        for base, along in zip(other, np.roll(other, -1, axis=0) - other):
+            length = np.hypot(along[0], along[1])
+            offsets = ends - base                                               # (K, 2, 2)
+            fraction = offsets @ along / length**2
+            off = np.abs(offsets[..., 0] * along[1] - offsets[..., 1] * along[0]) / length
+            facing = (ends[:, 1] - ends[:, 0]) @ along < 0.0
+            on = (off <= OUTLINE_RESOLUTION * length) & (fraction >= -OUTLINE_RESOLUTION) & (fraction <= 1.0 + OUTLINE_RESOLUTION)
+            joined |= facing & np.all(on, axis=1)
     return joined
 
 
