@@ -359,6 +359,11 @@ def test_a_prescribed_bodys_outline_gives_its_exact_outward_normal():
     for shift in ([1e-17, -1e-17], [-1e-17, 1e-17], [0.0, 0.0], [1e-17, 1e-17]):
         np.testing.assert_allclose(np.asarray(outline_normals(corners + jnp.asarray(shift), jnp.asarray([[1.0, 0.0]]))),
                                    [[diagonal, -diagonal]], atol=1e-12)
+    # On the mid-plane of a slab the two nearest faces are opposite: their mean has no
+    # direction (it was a zero normal, no contact there); the node keeps a face's normal.
+    thin = jnp.asarray([[0.0, 0.0], [1.0, 0.0], [1.0, 0.1], [0.0, 0.1]])
+    mid_plane = np.asarray(outline_normals(thin, jnp.asarray([[0.5, 0.05]])))
+    assert np.linalg.norm(mid_plane) == pytest.approx(1.0) and abs(mid_plane[0, 1]) == pytest.approx(1.0)
 
 
 def test_outlines_are_convex_and_counter_clockwise():

@@ -43,6 +43,8 @@ import numpy as np
 from jaxmpm.physics.contact import interface_impulse, interface_normals, safe_norm, unit
 
 OUTLINE_RESOLUTION = 1e-9    # of an outline's longest edge: nearer than that, a position counts as on it
+TIED_OPPOSITE = 1e-3         # |sum of the tied edges' normals| below this: opposite faces (mid-plane of a
+                             # slab), whose mean has no direction; the first of them is taken
 NEWTON_ITERATIONS = 3   # 2-3 reach round-off (the same wall motion as 8, bit for bit or within
                         # 1e-12) on retaining_wall, the wall twin and the small wall of docs/convergence.md
 
@@ -374,7 +376,10 @@ def outline_distances(corners, positions, excluded=None):
     counter-clockwise) at `positions` (..., 2): inside or on the outline, the largest signed
     distance n_e . (x - a_e) and the normal of that edge (the nearest); outside, |x - p| and
     (x - p) / |x - p| with p the nearest point of the outline (so the normal turns smoothly
-    round a corner). A position outside by less than `OUTLINE_RESOLUTION` of the longest edge
+    round a corner). Inside, a position equally near two edges (within `OUTLINE_RESOLUTION`),
+    a corner or the diagonal from it, takes the mean of their normals (round-off would choose
+    one, 90 degrees apart); between opposite faces, the first. A position outside by less than
+    `OUTLINE_RESOLUTION` of the longest edge
     counts as on it: a moved outline's round-off (~1e-17 m) would otherwise set the direction
     of x - p (a slab's top nodes then pointed 75 degrees off its face). `excluded` (K,) bool
     marks edges that are no surface, left out: edges on a held grid edge (`mirrored_edges`,
@@ -395,7 +400,9 @@ def outline_distances(corners, positions, excluded=None):
         gap_squares = jnp.where(excluded, jnp.inf, gap_squares)
     depth = jnp.max(distances, axis=-1)
     tied = distances >= depth[..., None] - resolution                         # nearest edges: two at a corner
-    nearest_edge = unit(jnp.sum(jnp.where(tied[..., None], normals, 0.0), axis=-2))
+    bisector = jnp.sum(jnp.where(tied[..., None], normals, 0.0), axis=-2)
+    nearest_edge = jnp.where(safe_norm(bisector)[..., None] > TIED_OPPOSITE, unit(bisector),
+                             normals[jnp.argmax(distances, axis=-1)])
     nearest = jnp.argmin(gap_squares, axis=-1)
     gap = jnp.take_along_axis(gaps, nearest[..., None, None], axis=-2)[..., 0, :]
     away = jnp.where(outside[..., None], gap, nearest_edge)                  # |gap| > 0 where used
