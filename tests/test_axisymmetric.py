@@ -356,6 +356,24 @@ def test_a_pile_split_into_tip_and_shaft_acts_as_the_whole_pile():
         "tip": ((False, False, False, False), ()), "shaft": ((False, False, False, False), ())}
 
 
+def test_joined_parts_take_the_normal_of_their_union_on_the_joint_too():
+    # bodies.union_of: a short tip (2 cm) under a shaft, their joint and the axis no surface.
+    # A node on the joint is inside (or on) both parts: it must take the normal of the nearer
+    # surface, the tip's bottom 2 cm away, not the shaft's side 3.75 cm away (the smaller
+    # signed distance is the deeper part there). Beside the pile, the side; every part gets the
+    # same normal, in either order (the impulses' shares assume it).
+    from jaxmpm.physics.bodies import outline_distances, union_of
+
+    tip = jnp.asarray([[0.0, 0.70], [0.05, 0.70], [0.05, 0.72], [0.0, 0.72]])
+    shaft = jnp.asarray([[0.0, 0.72], [0.05, 0.72], [0.05, 1.0], [0.0, 1.0]])
+    nodes = jnp.asarray([[0.0125, 0.72], [0.06, 0.71], [0.06, 0.73], [0.0125, 0.69], [0.049, 0.719]])
+    parts = [outline_distances(tip, nodes, jnp.asarray([False, False, True, True])),
+             outline_distances(shaft, nodes, jnp.asarray([True, False, False, True]))]
+    expected = [[0, -1], [1, 0], [1, 0], [0, -1], [1, 0]]
+    np.testing.assert_allclose(np.asarray(union_of(parts, 1e-11)[1]), expected, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(union_of(parts[::-1], 1e-11)[1]), expected, atol=1e-12)
+
+
 def resting_cylinder(kinematics):
     """A steel cylinder (radius 0.05 m, 0.04 m high) set on an elastic soil layer (0.1 m) on the
     axis, in contact (friction 0.3), damped to rest under gravity."""

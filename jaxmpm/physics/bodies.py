@@ -457,30 +457,41 @@ def no_surface(block, corners, structure):
     return excluded if block.joined is None else excluded | jnp.asarray(block.joined)
 
 
+def union_of(parts, tolerance):
+    """(signed distance, outward normal) of the union of joined parts, from each part's
+    `outline_distances` (its joined edges left out), in the given order: a node takes the part
+    whose surface is nearest, i.e. the smaller distance, or the larger where both are <= 0 (on
+    the joint, inside both parts, the nearer surface is the less deep one); equally near
+    (within `tolerance`), the mean of the two normals, unless they are opposite."""
+    distance, normal = parts[0]
+    for other_distance, other_normal in parts[1:]:
+        inside_both = (distance <= 0.0) & (other_distance <= 0.0)
+        other_nearer = jnp.where(inside_both, other_distance > distance, other_distance < distance)
+        tied = jnp.abs(other_distance - distance) <= tolerance
+        mean = normal + other_normal
+        blended = jnp.where(safe_norm(mean)[..., None] > TIED_OPPOSITE, unit(mean), normal)
+        normal = jnp.where(tied[..., None], blended, jnp.where(other_nearer[..., None], other_normal, normal))
+        distance = jnp.where(other_nearer, other_distance, distance)
+    return distance, normal
+
+
 def prescribed_outline_normals(structure, state, positions):
     """{field: (nx, ny, 2)} outward normals at the nodes `positions` of every prescribed body
     with a convex outline, from its outline at the state's time (`outline_distances`, its edges
     on held grid edges and its joined edges left out): the normal its contacts use
     (`contact.interface_normals`). Bodies joined to it (`BodyBlock.partners`: prescribed bodies
-    that share an edge with it and move with it) make one surface with it: at each node the
-    normal is that of the nearest of them (smallest signed distance), the normal of their
-    union, so that sand flowing past a pile's tip onto its shaft meets the pile's side, not
-    the shaft's lower end."""
+    that share an edge with it and move with it) make one structure with it, and all its parts
+    take the normal of their union (`union_of`, the parts in field order), so that sand
+    flowing past a pile's tip onto its shaft meets the pile's side, not the shaft's lower end."""
     measured = {}
     for block in kinematic_blocks(structure):
         if block.kinematics != "prescribed" or block.outline is None:
             continue
         corners = outline_now(block, state, positions.dtype)
         measured[block.field] = (block, outline_distances(corners, positions, no_surface(block, corners, structure)))
-    found = {}
-    for field, (block, (distance, normal)) in measured.items():
-        for partner in block.partners:
-            other_distance, other_normal = measured[partner][1]
-            nearer = other_distance < distance
-            distance = jnp.where(nearer, other_distance, distance)
-            normal = jnp.where(nearer[..., None], other_normal, normal)
-        found[field] = normal
-    return found
+    tolerance = OUTLINE_RESOLUTION * structure.layout.cell
+    return {field: union_of([measured[part][1] for part in sorted((field, *block.partners))], tolerance)[1]
+            for field, (block, _) in measured.items()}
 
 
 def outline_pairs(structure):

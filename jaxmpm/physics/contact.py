@@ -145,10 +145,12 @@ def interface_impulse(interface, mass, velocity, normal, friction, occupied):
 
 def part_share(interface, mass, occupied):
     """(nx, ny): the fraction of the impulse that the part `normal_from` of a joined structure
-    takes at each node: m_k / (m_k + sum of the later parts' masses). The parts move alike, so
-    the later parts' interfaces then correct the rest of the free field's velocity, each taking
-    its own share, and the whole impulse is that of one body (exactly: the correction is
-    homogeneous in the velocity difference)."""
+    takes at each node: m_k / (m_k + sum of the later parts' masses). The parts move alike and
+    share one normal, so the later parts' interfaces then correct the rest of the free field's
+    velocity, each taking its own share, and the whole impulse is that of one body: for the
+    Coulomb correction dv, dv(r + s dv(r)) = (1 - s) dv(r) for 0 <= s <= 1. Exact when the
+    parts' contacts with that body have the same friction and kind and no other interface of
+    it comes between them (as on the pile); otherwise a blend of the parts' laws."""
     own = jnp.where(occupied[interface.normal_from], mass[interface.normal_from], 0.0)
     total = own + sum(jnp.where(occupied[part], mass[part], 0.0) for part in interface.shared_with)
     return jnp.where(total > 0.0, own / jnp.where(total > 0.0, total, 1.0), 1.0)

@@ -97,10 +97,13 @@ def joined_structures(scene: Scene) -> dict:
     """{body: (joined edges (K,) bool, the other parts' names)} for each prescribed body with a
     convex outline: prescribed bodies that move together (the same velocity and velocity
     table) and share an edge (`bodies.joined_edges`) are parts of one structure, e.g. a pile's
-    tip and shaft split to read their forces apart; parts joined through others belong to it too."""
+    tip and shaft split to read their forces apart; parts joined through others belong to it too.
+    Decided from the scene's values: parts later given different velocities stay joined."""
     moving = [body for body in scene.bodies if body.kinematics.type == "prescribed"]
     outlines = {body.name: convex_outline(body.region.vertices) for body in moving}
-    motion = {body.name: (np.asarray(body.kinematics.velocity, float).tolist(), body.kinematics.time) for body in moving}
+    motion = {body.name: (np.asarray(body.kinematics.velocity, float).tolist(),
+                          None if body.kinematics.time is None else [float(t) for t in body.kinematics.time])
+              for body in moving}
     named = [name for name, outline in outlines.items() if outline is not None]
 
     def meet(a, b):
