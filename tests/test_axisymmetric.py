@@ -373,6 +373,17 @@ def test_joined_parts_take_the_normal_of_their_union_on_the_joint_too():
     np.testing.assert_allclose(np.asarray(union_of(parts, 1e-11)[1]), expected, atol=1e-12)
     np.testing.assert_allclose(np.asarray(union_of(parts[::-1], 1e-11)[1]), expected, atol=1e-12)
 
+    # Finite gradients with respect to the structure's motion on the joint, at its corners and
+    # at a tie between the parts (where the union switches part).
+    def spread(shift, node):
+        at = jnp.asarray([node])
+        joined = [outline_distances(tip + shift, at, jnp.asarray([False, False, True, True])),
+                  outline_distances(shaft + shift, at, jnp.asarray([True, False, False, True]))]
+        return jnp.sum(union_of(joined, 1e-11)[1] * jnp.asarray([0.3, 0.7]))
+
+    for node in ([0.0, 0.72], [0.05, 0.72], [0.05, 0.70], [0.025, 0.71], [0.06, 0.72]):
+        assert np.all(np.isfinite(np.asarray(jax.grad(spread)(jnp.zeros(2), node))))
+
 
 def resting_cylinder(kinematics):
     """A steel cylinder (radius 0.05 m, 0.04 m high) set on an elastic soil layer (0.1 m) on the
