@@ -144,14 +144,15 @@ def test_a_subcycled_block_carries_its_weight_as_stress():
     # subcycled 4 times, damped to rest: the slab's support reaches it only through the contact
     # solve, and its balanced share (physics/subcycling.py) must load it as its weight does.
     # Statics: the mean vertical stress over a horizontal section at depth d below its top is
-    # -rho g d (the weight above, per unit width), and the slab carries the weight. Measured:
-    # within 0.06 % and 0.05 %. Before the substeps damped the deformation only
-    # (solver.deformation_damping), the damping ate momentum that the contact gave back: the
-    # slab carried 1.098 times the weight, and the stress was 9.9 % high at every depth.
+    # -rho g d (the weight above, per unit width), and the slab carries the weight. Measured
+    # at 2 cm cells: the support within 0.02 %, the stress within 0.07, 0.18 and 0.63 % at 5, 10
+    # and 15 cm depth (at 1 cm cells: 0.06 % and 0.05 %). Before the substeps damped the
+    # deformation only (solver.deformation_damping), the damping ate momentum that the contact
+    # gave back: the slab carried 1.098 times the weight, and the stress was 9.9 % high at every depth.
     rho, height, width = 2400.0, 0.2, 0.1
     scene = Scene(
         name="block",
-        grid=Grid(size=(0.4, 0.35), cell=0.01, boundaries=Boundaries("slip", "slip", "fixed", "free")),
+        grid=Grid(size=(0.4, 0.36), cell=0.02, boundaries=Boundaries("slip", "slip", "fixed", "free")),
         materials={"slab": LinearElastic(density=1800.0, young=5e7, poisson=0.3),
                    "block": LinearElastic(density=rho, young=1e9, poisson=0.2)},
         bodies=(Body("slab", "slab", Rectangle((0.0, 0.0), (0.4, 0.1)), initial_stress=Geostatic(0.43)),
@@ -168,13 +169,13 @@ def test_a_subcycled_block_carries_its_weight_as_stress():
     probes, state = sim.probes_and_final_state()
     weight = rho * G * width * height
     support = np.asarray(probes["support"])[:, 1]
-    assert np.mean(support[-2000:]) == pytest.approx(weight, rel=0.01)    # the force alternates step to step (README)
+    assert np.mean(support[-1000:]) == pytest.approx(weight, rel=0.01)    # the force alternates step to step (README)
     points = slice(*sim.body_slices[1])
     x, stress = np.asarray(state.particles.x)[points], np.asarray(state.particles.stress_voigt)[points]
     assert np.all(np.isfinite(stress))
-    top = x[:, 1].max() + 0.0025        # the points sit a quarter cell inside the faces
-    for depth in (0.05, 0.1, 0.15):
-        row = np.abs(top - x[:, 1] - depth) < 0.003
+    top = x[:, 1].max() + 0.005         # the points sit a quarter cell inside the faces
+    for depth in (0.05, 0.1, 0.15):     # the two rows of points half a spacing above and below
+        row = np.abs(top - x[:, 1] - depth) < 0.006
         assert row.sum() >= 10
         expected = -rho * G * depth
         assert abs(stress[row, 1].mean() - expected) < 0.01 * abs(expected), (depth, stress[row, 1].mean(), expected)
@@ -215,28 +216,32 @@ KINEMATICS_OF = {"free": Kinematics("free"), "prescribed": Kinematics("prescribe
                  "rigid": Kinematics("rigid"), "subcycled": Kinematics("free", substeps=3)}
 
 
+EVERY_KIND_TWICE = tuple(kind for kind in BODY_KINDS for _ in range(2))
+
+
 @pytest.mark.parametrize("kinds,paired,geometry", [
-    (kinds, paired, "plane_strain") for kinds in itertools.combinations_with_replacement(BODY_KINDS, 2)
+    (kinds, paired, "plane_strain") for kinds in [EVERY_KIND_TWICE] + [(kind, kind) for kind in BODY_KINDS]
     for paired in (False, True)
-] + [  # in axisymmetry, a sample of the pairs with a body that moves as one along the axis
-    (kinds, paired, "axisymmetric") for kinds in (("rigid", "subcycled"), ("prescribed", "rigid")) for paired in (False, True)
-])
+] + [(EVERY_KIND_TWICE, paired, "axisymmetric") for paired in (False, True)])
 def test_every_pair_of_body_kinds_runs_or_is_refused(kinds, paired, geometry):
-    # A sand layer and two blocks above it of the given kinds, in contact with the sand or
-    # bonded to it (no pair); before bodies.py a prescribed and a rigid body in one scene
-    # failed while tracing. Three steps run and stay finite.
+    # A sand layer and blocks above it of the given kinds, in contact with the sand or bonded
+    # to it (no pair): two blocks of every kind in one scene (so every pair of kinds meets in
+    # it), and each kind alone (so no kind leans on another's code being compiled in); before
+    # bodies.py a prescribed and a rigid body in one scene failed while tracing. Three steps
+    # run and stay finite.
     blocks = tuple(
-        Body(f"block{index}", "steel", Rectangle((0.1 + 0.3 * index, 0.2), (0.25 + 0.3 * index, 0.3)),
+        Body(f"block{index}", "steel", Rectangle((0.05 + 0.15 * index, 0.2), (0.15 + 0.15 * index, 0.3)),
              kinematics=KINEMATICS_OF[kind])
         for index, kind in enumerate(kinds)
     )
+    width = 0.15 * len(kinds) + 0.05
     scene = Scene(
         name="kinds",
         geometry=geometry,
-        grid=Grid(size=(0.7, 0.4), cell=0.05, boundaries=Boundaries("slip", "slip", "fixed", "free")),
+        grid=Grid(size=(width, 0.4), cell=0.05, boundaries=Boundaries("slip", "slip", "fixed", "free")),
         materials={"sand": LinearElastic(density=1800.0, young=5e6, poisson=0.3),
                    "steel": LinearElastic(density=7800.0, young=2e8, poisson=0.3)},
-        bodies=(Body("sand", "sand", Rectangle((0.0, 0.0), (0.7, 0.2))),) + blocks,
+        bodies=(Body("sand", "sand", Rectangle((0.0, 0.0), (width, 0.2))),) + blocks,
         contacts=tuple(Contact(("sand", block.name), 0.3) for block in blocks) if paired else (),
         dt=1e-4,
         duration=3e-4,
