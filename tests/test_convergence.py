@@ -80,11 +80,14 @@ def test_plain_apic_drifts_with_the_time_step():
     assert abs(coarse[-1] - fine[-1]) / abs(fine[-1]) > 0.10
 
 
+STIFF_DURATION = 0.08       # s: four outputs with the wall moving (it has moved mm by the first)
+
+
 @pytest.fixture(scope="module")
 def stiff_elastic_wall():
     """(top (T,), dt) of the wall as a free body with E = 30 GPa at its own stable step (60 times
     shorter than the sand's)."""
-    sim = Simulation(small_wall("free", young=30.0e9))
+    sim = Simulation(small_wall("free", young=30.0e9, duration=STIFF_DURATION))
     return np.asarray(sim.probes()["top"][:, 0])[:: sim.steps_per_output], sim.dt
 
 
@@ -98,7 +101,7 @@ def test_a_stiff_elastic_wall_moves_like_the_rigid_one(stiff_elastic_wall):
     # before the rigid body met the sand with the mean normal, the rigid wall moved 40 %
     # further; with plain APIC the elastic wall (60 times the steps) hardly moved at all.
     elastic, dt = stiff_elastic_wall
-    rigid = wall_top(dataclasses.replace(small_wall("rigid"), dt=dt))
+    rigid = wall_top(dataclasses.replace(small_wall("rigid", duration=STIFF_DURATION), dt=dt))
     moving = np.abs(rigid) > 1e-3
     assert moving.sum() >= 3
     difference = np.abs(elastic - rigid)[moving] / np.abs(rigid)[moving]
@@ -114,12 +117,12 @@ def test_a_subcycled_stiff_wall_moves_as_the_rigid_one_at_the_sands_step(stiff_e
     # contact met the predicted node velocities instead, the wall's vibration under its share
     # of the contact load made it move 16 % too far at cfl 0.4 and 5.5 % at 0.2 (a ratchet).
     reference, fine_dt = stiff_elastic_wall
-    sim = Simulation(small_wall("free", young=30.0e9, substeps="auto"))
+    sim = Simulation(small_wall("free", young=30.0e9, substeps="auto", duration=STIFF_DURATION))
     wall = next(block for block in sim.structure.bodies if block.name == "wall")
     assert wall.substeps > 20 and sim.dt > 20 * fine_dt
     probes, state = sim.probes_and_final_state()
     top = np.asarray(probes["top"][:, 0])[:: sim.steps_per_output]
-    rigid = wall_top(dataclasses.replace(small_wall("rigid"), dt=sim.dt))
+    rigid = wall_top(dataclasses.replace(small_wall("rigid", duration=STIFF_DURATION), dt=sim.dt))
     moving = np.abs(reference) > 1e-3
     assert moving.sum() >= 3
     assert np.max(np.abs(top - rigid)[moving] / np.abs(rigid)[moving]) < 0.01
