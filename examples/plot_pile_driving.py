@@ -511,6 +511,12 @@ def summary(result, pile, data, knee_point):
     if data.heave is not None:
         lines.append(f"surface at r = {data.heave_at[0]:g} m: z displacement {1000 * data.heave[-1]:+.2f} mm at the end "
                      f"(largest {1000 * np.max(data.heave):+.2f} mm)")
+    for probe in (probe for probe in jaxmpm.Scene.from_toml(result.scene_toml).probes if probe.kind == "peak_speed"):
+        speeds = np.asarray(result.probes[probe.name])[1:, 0]
+        fastest = int(np.argmax(speeds))
+        lines.append(f"fastest point of {probe.body}: {speeds[fastest]:.2f} m/s at penetration "
+                     f"{1000 * data.penetration[fastest]:.1f} mm ({speeds[fastest] / pile.speed:.1f} x the pile's "
+                     f"speed; a numerical event shows here first)")
     rough = estimates(pile, float(data.penetration[-1]))
     lines.append(f"estimates: phi_c = {rough['phi_c']:.1f} deg (the cone's triaxial-compression angle), Reissner "
                  f"N_q = {rough['N_q']:.1f}; Vesic N*_sigma = {rough['N_sigma']:.0f} at the end (I_r = {rough['I_r']:.0f}); "

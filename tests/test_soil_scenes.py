@@ -163,3 +163,35 @@ body = "layer"
         value = sim.observe(moved, sim.quiet_diagnostics(sim.dtype), x0)["turn"]
         assert value.shape == (1,)
         np.testing.assert_allclose(float(value[0]), theta, atol=1e-12)
+
+
+def test_peak_speed_probe_is_the_fastest_points_speed_with_a_finite_gradient():
+    # max_p |v_p| over the body, read from the state: one point given 3-4-5 velocity among
+    # points at rest reads 5 (the others do not hide it); a body at rest reads 0 with a
+    # finite derivative (the square root is guarded at zero).
+    import jax
+    import jax.numpy as jnp
+
+    text = LAYER + """
+[[probes]]
+name = "fastest"
+kind = "peak_speed"
+body = "layer"
+"""
+    sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(text))
+    state = sim.initial_state()
+    x0 = state.particles.x
+
+    def peak(v):
+        moved = state.replace(particles=state.particles.replace(v=v))
+        return sim.observe(moved, sim.quiet_diagnostics(sim.dtype), x0)["fastest"]
+
+    v = np.zeros_like(np.asarray(state.particles.v))
+    v[7] = (3.0, -4.0)
+    assert peak(jnp.asarray(v)).shape == (1,)
+    assert float(peak(jnp.asarray(v))[0]) == pytest.approx(5.0, rel=1e-14)
+    assert float(peak(jnp.zeros_like(state.particles.v))[0]) == 0.0
+    gradient = jax.grad(lambda v: peak(v)[0])(jnp.zeros_like(state.particles.v))
+    assert bool(jnp.all(jnp.isfinite(gradient)))
+    gradient = jax.grad(lambda v: peak(v)[0])(jnp.asarray(v))
+    np.testing.assert_allclose(np.asarray(gradient[7]), [0.6, -0.8], rtol=1e-12)

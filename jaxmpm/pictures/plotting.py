@@ -30,7 +30,7 @@ UNITS = {"p": "Pa", "q": "Pa", **{name: "Pa" for names in STRESS_NAMES.values() 
 PER_RADIAN_UNITS = {"volume": "m^3/rad", "mass": "kg/rad"}          # axisymmetry: per radian
 
 
-PROBE_UNITS = {"displacement": "m", "body_displacement": "m", "body_rotation": "rad",
+PROBE_UNITS = {"displacement": "m", "body_displacement": "m", "body_rotation": "rad", "peak_speed": "m/s",
                "contact_force": "N/m", "reaction": "N/m"}
 RING_PROBE_UNITS = {"contact_force": "N", "reaction": "N"}          # axisymmetry: the whole ring
 

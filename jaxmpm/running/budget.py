@@ -38,7 +38,7 @@ def estimate_bytes(scene, steps: int) -> dict:
     subcells = float(nx) * ny * scene.numerics.ppc ** 2
     points = min(subcells, sum(1.05 * region_area(body.region) / spacing ** 2 + 64 for body in scene.bodies))
     fields = min(len(scene.bodies), 1 + len(scene.contacts) * 2 + sum(b.kinematics.type != "free" or b.kinematics.subcycled for b in scene.bodies))
-    components = sum(1 if probe.kind == "body_rotation" else 2 for probe in scene.probes)
+    components = sum(1 if probe.kind in ("body_rotation", "peak_speed") else 2 for probe in scene.probes)
     return {
         "lattice": subcells * LATTICE_BYTES,
         "points": points * VALUES_PER_POINT * itemsize,

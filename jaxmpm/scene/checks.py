@@ -282,7 +282,7 @@ def check_probes(scene):
         where = f"probes[{index}]"
         check_value(f"{where}.kind", probe_keys.key("kind"), probe.kind)
         check_fields(probe, probe_keys, where, probe.kind)
-        if probe.kind in ("body_displacement", "body_rotation", "reaction") and probe.body not in kinds:
+        if probe.kind in ("body_displacement", "body_rotation", "peak_speed", "reaction") and probe.body not in kinds:
             raise SceneError(f"{where}.body = {probe.body!r} is not the name of a body.")
         if probe.kind == "reaction" and kinds[probe.body] != "prescribed":
             raise SceneError(

@@ -18,7 +18,7 @@ BOUNDARY_KINDS = ("fixed", "slip", "free")
 NUMERICS_CHOICES = {"shape": ("linear", "gimp", "bspline2"), "transfer": ("flip", "apic"),
                     "dtype": ("float64", "float32"), "update": ("musl", "usl")}
 SNAPSHOT_FIELDS = ("x", "v", "displacement", "stress", "plastic_strain", "volume", "mass")
-PROBE_KINDS = ("displacement", "body_displacement", "body_rotation", "contact_force", "reaction")
+PROBE_KINDS = ("displacement", "body_displacement", "body_rotation", "peak_speed", "contact_force", "reaction")
 KINEMATICS = ("free", "prescribed", "rigid")
 GEOMETRIES = ("plane_strain", "axisymmetric")
 NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")   # bodies, materials, probes: safe in HDF5 paths and --set
@@ -212,7 +212,8 @@ class Probe:
     """A recorded history. `displacement`: of the point nearest `at` at t = 0 (k = 2);
     `body_displacement`: mass-weighted mean displacement of `body` (k = 2);
     `body_rotation`: rotation of `body` about its centre of mass, counter-clockwise positive
-    [rad] (k = 1); `contact_force`: the force the first body of `pair` exerts on the second
+    [rad] (k = 1); `peak_speed`: the largest speed of a point of `body` [m/s] (k = 1), a
+    watch on numerical events that averages hide; `contact_force`: the force the first body of `pair` exerts on the second
     through their contact [N per m of thickness] (k = 2); `reaction`: the force that keeps the
     prescribed `body` on its path (what the driver applies) [N/m] (k = 2)."""
 

@@ -148,6 +148,8 @@ PROBE = Section(
                                   "recorded (2 components)"),),
         "body_rotation": (Key("body", "str", "the body whose rotation about its centre of mass is recorded "
                               "[rad, counter-clockwise positive] (1 component)"),),
+        "peak_speed": (Key("body", "str", "the body whose fastest point's speed is recorded [m/s] "
+                           "(1 component): a watch on local numerical events that averages hide"),),
         "contact_force": (Key("pair", "strings", "a [[contacts]] pair; records the force of the first body "
                               "on the second [N per m of thickness; whole-ring N in axisymmetry]", length=2),),
         "reaction": (Key("body", "str", "a prescribed body; records the force that keeps it on its path "
