@@ -41,10 +41,11 @@ body = "block"
 """
 
 
-def reverse_mode_against_central_differences(sim, loss, cases, rel):
+def reverse_mode_against_central_differences(sim, loss, cases, rel, relative_step=1e-6):
     """One jitted reverse-mode gradient of `loss(params)` (every leaf finite) and, for each
     (dotted name, value, path into the gradient) of `cases`, its derivative against central
-    differences with relative step 1e-6 (docs/validation.md §8): nonzero and within `rel`."""
+    differences with relative step `relative_step` (1e-6 unless a switch lies within it,
+    docs/validation.md §8): nonzero and within `rel`."""
     import jax
     import jax.numpy as jnp
     import pytest
@@ -59,7 +60,7 @@ def reverse_mode_against_central_differences(sim, loss, cases, rel):
         derivative = gradient
         for key in path:
             derivative = derivative[key]
-        step = 1e-6 * value
+        step = relative_step * value
         above, below = (forward(with_values(params, {name: jnp.asarray(value + sign * step)})) for sign in (1, -1))
         reference = (float(above) - float(below)) / (2 * step)
         assert float(derivative) != 0.0

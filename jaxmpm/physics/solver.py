@@ -519,7 +519,7 @@ def make_step(structure: Structure):
         )
         state, reactions = move_kinematic_bodies(state.replace(particles=particles), start, structure, motions, impulses,
                                                  gravity)
-        state = keep_points_outside(state, structure, motions)
+        state = keep_points_outside(state, structure)
         particles = state.particles
         if structure.update == "musl":
             velocity_new = jax.named_call(remap_velocity, name="remap_velocity")(
