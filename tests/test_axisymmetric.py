@@ -327,6 +327,27 @@ def split_pile(pile, velocities=((0.0, -0.5), (0.0, -0.5)), tip_radius=0.04):
                                probes=(Probe("tip", "reaction", body="tip"), Probe("shaft", "reaction", body="shaft")))
 
 
+def test_sand_put_back_at_a_piles_shoulder_is_not_kicked_up():
+    # Sand points that enter the pile are put back on its outline (bodies.keep_points_outside).
+    # Removing their approach velocity there too, at those points alone (until 2026-12-06),
+    # kicked the sand at the tip's shoulder upward: over 15 cm of this coarse pile's push the
+    # fastest sand point moved faster than 3 times the pile's speed in 66 of 2296 steps (3.7
+    # times at the 99th percentile, 4.1 at most). Left as the grid gave it: in none (2.3 times
+    # at the 99th percentile). A regression guard measured on this scene, not a physical bound
+    # (flow round a sharp corner has no bounded speed); docs/convergence.md.
+    from jaxmpm import Probe
+
+    base = small_pile()
+    pile = dataclasses.replace(base, duration=0.3, output_every=0.1,
+                               numerics=dataclasses.replace(base.numerics, relaxation=10.0),
+                               probes=(Probe("fastest", "peak_speed", body="sand"),))
+    sim = jaxmpm.Simulation(pile)
+    fastest = np.asarray(sim.probes()["fastest"])[1:, 0]
+    assert len(fastest) > 2000
+    assert np.percentile(fastest, 99) < 3 * 0.5
+    assert np.sum(fastest > 3 * 0.5) <= 5
+
+
 def test_a_pile_split_into_tip_and_shaft_acts_as_the_whole_pile():
     # Prescribed bodies that share an edge and move together are one structure
     # (simulation.joined_structures): their contacts take the normal of their union and each
