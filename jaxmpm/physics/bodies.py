@@ -3,8 +3,7 @@
 Each kind (`Prescribed`, `Rigid`; `KINDS`) answers the same questions, so the step's phases
 (`impose_body_motions`, `move_kinematic_bodies`, `keep_points_outside`) hold no kind `if`s:
 its motion over the step if nothing touched it (`free_motion`), its velocity at given
-positions (`velocity_at`: imposed on its field's nodes, and the surface free points are kept
-off), how its points move from the impulses its field received (`moved`), and where its
+positions (`velocity_at`: imposed on its field's nodes), how its points move from the impulses its field received (`moved`), and where its
 outline is now (`outline_now`). The impulses themselves come from `contact`; a rigid body's
 motion is solved with them (`solve_rigid_motions`).
 
@@ -126,7 +125,7 @@ class Prescribed:
         return PrescribedStep(before, prescribed_velocity(block, velocity, time_new))
 
     @staticmethod
-    def velocity_at(motion, positions, dt):
+    def velocity_at(motion, positions):
         """Its velocity at `positions` (..., 2) during the step: the same everywhere."""
         return jnp.broadcast_to(motion.after, positions.shape)
 
@@ -160,10 +159,10 @@ class Rigid:
         return RigidStep(mass, centre, inertia, motion.velocity + structure.dt * params["scene"]["gravity"], motion.spin)
 
     @staticmethod
-    def velocity_at(motion, positions, dt):
-        """V + omega e_z x (x - c - dt V) at `positions` (..., 2): its velocity field with the
-        centre of mass where it is `dt` into the step."""
-        return motion.velocity + spin_velocity(motion.spin, positions - motion.centre - dt * motion.velocity)
+    def velocity_at(motion, positions):
+        """V + omega e_z x (x - c) at `positions` (..., 2): its velocity field with the centre
+        of mass where it is at the start of the step."""
+        return motion.velocity + spin_velocity(motion.spin, positions - motion.centre)
 
     @staticmethod
     def moved(block, state, start, motion, received, structure, gravity):
@@ -201,9 +200,9 @@ def free_motions(params, state, structure, time_new):
 
 def impose_kinematic_fields(velocity, structure, motions, positions):
     """Node velocities of each kinematic body's field set to the body's velocity at the nodes
-    (`velocity_at` of its kind, at the start of the step's frame: dt = 0)."""
+    (`velocity_at` of its kind, in the step's starting frame)."""
     for block in kinematic_blocks(structure):
-        velocity = velocity.at[block.field].set(KINDS[block.kinematics].velocity_at(motions[block.name], positions, 0.0))
+        velocity = velocity.at[block.field].set(KINDS[block.kinematics].velocity_at(motions[block.name], positions))
     return velocity
 
 
@@ -313,7 +312,7 @@ def impose_body_motions(params, state, structure, grid, frictions, time_new, pre
     velocity = impose_kinematic_fields(grid.velocity, structure, motions, positions)
     for block in structure.bodies:
         if block.name in predicted:
-            velocity = velocity.at[block.field].set(Rigid.velocity_at(motions[block.name], positions, 0.0))
+            velocity = velocity.at[block.field].set(Rigid.velocity_at(motions[block.name], positions))
     return velocity, motions
 
 

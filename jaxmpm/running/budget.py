@@ -16,6 +16,7 @@ import math
 import os
 
 from jaxmpm.errors import SceneError
+from jaxmpm.scene.parts import SCALAR_PROBE_KINDS
 
 LATTICE_BYTES = 56          # per sub-cell: int64 indices (2), float64 positions (2), owner, flags
 VALUES_PER_POINT = 130
@@ -38,7 +39,7 @@ def estimate_bytes(scene, steps: int) -> dict:
     subcells = float(nx) * ny * scene.numerics.ppc ** 2
     points = min(subcells, sum(1.05 * region_area(body.region) / spacing ** 2 + 64 for body in scene.bodies))
     fields = min(len(scene.bodies), 1 + len(scene.contacts) * 2 + sum(b.kinematics.type != "free" or b.kinematics.subcycled for b in scene.bodies))
-    components = sum(1 if probe.kind in ("body_rotation", "peak_speed") else 2 for probe in scene.probes)
+    components = sum(1 if probe.kind in SCALAR_PROBE_KINDS else 2 for probe in scene.probes)
     return {
         "lattice": subcells * LATTICE_BYTES,
         "points": points * VALUES_PER_POINT * itemsize,

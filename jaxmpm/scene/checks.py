@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from jaxmpm.errors import SceneError
 from jaxmpm.keys import check_range, check_value
-from jaxmpm.scene.parts import KINEMATICS, NAME, Grid, Kinematics, Rectangle
+from jaxmpm.scene.parts import BODY_PROBE_KINDS, KINEMATICS, NAME, Grid, Kinematics, Rectangle
 from jaxmpm.scene.schema import SCENE_FILE
 from jaxmpm.physics.time_step import check_scene_step
 
@@ -282,7 +282,7 @@ def check_probes(scene):
         where = f"probes[{index}]"
         check_value(f"{where}.kind", probe_keys.key("kind"), probe.kind)
         check_fields(probe, probe_keys, where, probe.kind)
-        if probe.kind in ("body_displacement", "body_rotation", "peak_speed", "reaction") and probe.body not in kinds:
+        if probe.kind in BODY_PROBE_KINDS and probe.body not in kinds:
             raise SceneError(f"{where}.body = {probe.body!r} is not the name of a body.")
         if probe.kind == "reaction" and kinds[probe.body] != "prescribed":
             raise SceneError(

@@ -19,6 +19,8 @@ NUMERICS_CHOICES = {"shape": ("linear", "gimp", "bspline2"), "transfer": ("flip"
                     "dtype": ("float64", "float32"), "update": ("musl", "usl")}
 SNAPSHOT_FIELDS = ("x", "v", "displacement", "stress", "plastic_strain", "volume", "mass")
 PROBE_KINDS = ("displacement", "body_displacement", "body_rotation", "peak_speed", "contact_force", "reaction")
+BODY_PROBE_KINDS = ("body_displacement", "body_rotation", "peak_speed", "reaction")    # they name a `body`
+SCALAR_PROBE_KINDS = ("body_rotation", "peak_speed")                                  # one component, not two
 KINEMATICS = ("free", "prescribed", "rigid")
 GEOMETRIES = ("plane_strain", "axisymmetric")
 NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")   # bodies, materials, probes: safe in HDF5 paths and --set
