@@ -144,16 +144,20 @@ def test_geostatic_depth_follows_a_sloping_surface():
     np.testing.assert_array_less(np.abs(depth - ((0.31 - x) - y)), 0.5 * spacing + 1e-12)
 
 
+def layer_with_probe(name, kind):
+    """The layer with one probe of `kind` on it, named `name`."""
+    return jaxmpm.Simulation(jaxmpm.Scene.from_toml(LAYER + f"""
+[[probes]]
+name = "{name}"
+kind = "{kind}"
+body = "layer"
+"""))
+
+
 def test_body_rotation_probe_measures_a_rigid_turn():
     # The probe is the angle of the least-squares rotation between the initial and current
     # shapes; for points turned rigidly by theta about any centre it is theta exactly.
-    text = LAYER + """
-[[probes]]
-name = "turn"
-kind = "body_rotation"
-body = "layer"
-"""
-    sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(text))
+    sim = layer_with_probe("turn", "body_rotation")
     state = sim.initial_state()
     for theta in (0.3, -1.2, 2.5):
         rotation = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
@@ -172,13 +176,7 @@ def test_peak_speed_probe_is_the_fastest_points_speed_with_a_finite_gradient():
     import jax
     import jax.numpy as jnp
 
-    text = LAYER + """
-[[probes]]
-name = "fastest"
-kind = "peak_speed"
-body = "layer"
-"""
-    sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(text))
+    sim = layer_with_probe("fastest", "peak_speed")
     state = sim.initial_state()
     x0 = state.particles.x
 
