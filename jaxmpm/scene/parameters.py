@@ -148,7 +148,9 @@ def value_at(params: dict, location: tuple):
 def with_values(params: dict, values: dict) -> dict:
     """A copy of `params` with {dotted name: value} replaced, e.g.
     with_values(sim.params, {"sand.friction_angle": phi}) or {"scene.gravity[1]": -50.0}
-    (differentiable: the values may be traced). SceneError if a name is not a parameter."""
+    (differentiable: the values may be traced). A value replacing an array takes that array's
+    dtype, so a jitted function of the parameters is not traced again for it. SceneError if a
+    name is not a parameter."""
     result = jax.tree_util.tree_map(lambda leaf: leaf, params)      # fresh containers
     for name, value in values.items():
         location = resolve(params, name)
@@ -157,6 +159,9 @@ def with_values(params: dict, values: dict) -> dict:
         *tables, last = [part for part in location if not isinstance(part, int)]
         if isinstance(location[-1], int):        # one component of a vector
             value = jnp.asarray(value_at(result, location[:-1])).at[location[-1]].set(value)
+        replaced = value_at(params, tuple(tables) + (last,))
+        if hasattr(replaced, "dtype"):
+            value = jnp.asarray(value, replaced.dtype)
         container = result
         for part in tables:
             container[part] = dict(container[part])
