@@ -195,6 +195,7 @@ class Simulation:
         self.step = make_step(self.structure)
         self.observe = make_probes(scene, self.seeds)
         self._probes = jax.jit(self._probes_from_state)    # also nested in callers' jits: XLA's defaults
+        self._initial = jax.jit(self._initial_state_from)   # one small program, not an op at a time
         self.compiled_cache = {}     # compiled work built on this simulation (e.g. calibrations)
         self.chunk = chunk_length(self.steps_per_output, self.point_count)   # steps per compiled call of `run`
         self._advance = jit_with_options(self._advance_chunk, several_fields=self.several_fields)
@@ -336,6 +337,10 @@ class Simulation:
         moved. Masses follow params["materials"][material]["density"] and geostatic stresses also
         params["scene"]["gravity"], so gradients reach them."""
         params = self.cast(self.params if params is None else params)
+        return self.place(self._initial(params))
+
+    def _initial_state_from(self, params) -> State:
+        """`initial_state` on one device (compiled once per simulation as `_initial`)."""
         count, dtype = len(self.seeds.positions), self.dtype
         masses, velocities, stresses, histories, rigid = [], [], [], [], {}
         for block, body in zip(self.structure.bodies, self.scene.bodies):
@@ -363,7 +368,7 @@ class Simulation:
             history=tuple(histories),
             flags=jnp.zeros((count,), jnp.int32),
         )
-        return self.place(State(particles=particles, rigid=rigid, **counters_at_start()))
+        return State(particles=particles, rigid=rigid, **counters_at_start())
 
     def body_initial_stress(self, body, block, material, gravity):
         """(n_body, 4) initial stress of one body (`Particles.stress_voigt`): zero, or
