@@ -516,7 +516,7 @@ def test_scenes_with_several_fields_compile_with_their_options_and_the_same_numb
     single = Simulation(dataclasses.replace(sliding_block(30.0, 0.3), contacts=(), probes=(),
                                             bodies=(sliding_block(30.0, 0.3).bodies[1],)))
     assert not single.several_fields and single.compiler_options() == {}
-    sim = Simulation(sliding_block(30.0, 0.3, duration=0.02, shape="bspline2"))
+    sim = Simulation(sliding_block(30.0, 0.3, duration=0.02, shape="linear"))
     assert sim.several_fields
     assert sim.compiler_options(reverse_mode=True) == compiler_options(reverse_mode=True, several_fields=True)
     if not accepted("region_analysis"):
