@@ -19,9 +19,9 @@ from jaxmpm.running.output import resumable_steps
 from jaxmpm.running.runner import chunk_length, interval_calls
 from tests.scenes import BLOCK
 
-# One output interval of 270,000 steps (about 8 s here): before runs were chunked, a signal
-# was acted on only at the end of it.
-LONG = BLOCK.replace("duration = 0.01", "duration = 200.0").replace("output_every = 0.005", "output_every = 200.0")
+# One output interval of 135,000 steps (about 4 s on 2 cores): before runs were chunked, a
+# signal was acted on only at the end of it.
+LONG = BLOCK.replace("duration = 0.01", "duration = 100.0").replace("output_every = 0.005", "output_every = 100.0")
 
 
 def test_the_chunk_bounds_the_work_per_call_and_divides_the_interval_where_it_can():
