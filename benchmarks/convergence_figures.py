@@ -64,11 +64,12 @@ def deposit_surface(positions, width):
     return (np.arange(top.size) + 0.5) * width, top
 
 
-def run_all(names=EXAMPLES):
-    """{key: array} of every run's quantity (and the column's final surface)."""
+def run_all(names=EXAMPLES, kept=None):
+    """{key: array} of every run's quantity (and the column's final surface), added to `kept`
+    and saved to HISTORIES after each run, so that a study stopped part-way keeps its runs."""
     import jaxmpm
 
-    kept = {}
+    kept = {} if kept is None else kept
     for name in names:
         shipped = jaxmpm.load_scene(ROOT / "examples" / f"{name}.toml")
         for relaxation, cfls in ((shipped.numerics.relaxation, SHIPPED_CFLS), (0.0, PLAIN_CFLS)):
@@ -87,7 +88,17 @@ def run_all(names=EXAMPLES):
                     kept[key + "/surface_x"], kept[key + "/surface_y"] = deposit_surface(
                         np.asarray(result.snapshots[body]["x"][-1]), scene.grid.cell)
                 print(f"{key}: {time.perf_counter() - started:.0f} s", flush=True)
+                save_histories(kept)
     return kept
+
+
+def save_histories(kept):
+    """Write the histories to HISTORIES through a temporary file (a stopped run leaves the
+    previous file whole)."""
+    HISTORIES.parent.mkdir(parents=True, exist_ok=True)
+    partial = HISTORIES.with_suffix(".partial.npz")
+    np.savez(partial, **kept)
+    partial.replace(HISTORIES)
 
 
 LABELS = {"retaining_wall": ("time [s]", "wall rotation [°]", 1.0),
@@ -175,9 +186,7 @@ def main():
         print(f"jaxmpm convergence figures, {time.strftime('%Y-%m-%d')}, {jax.devices()[0].device_kind}, "
               f"{__import__('os').cpu_count()} cores", flush=True)
         kept = {key: value for key, value in kept.items() if key.split("/")[0] not in arguments.examples}
-        kept.update(run_all(arguments.examples))
-        HISTORIES.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(HISTORIES, **kept)
+        kept = run_all(arguments.examples, kept)
     draw(kept)
 
 
