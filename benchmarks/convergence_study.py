@@ -1,7 +1,7 @@
 """Time-step and cell convergence of the headline quantities: the tables of docs/convergence.md.
 
     python benchmarks/convergence_study.py                 # every study (about 25 min on 2 cores)
-    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | subcycled | examples | cells | example_cells | relaxation | shapes
+    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | subcycled | examples | cells | example_cells | relaxation | shapes | pile_jitter
 
 Each run is a forward run of a scene at some numerics; the quantities are read at every
 output time and the largest relative change between two runs is reported.
@@ -39,6 +39,9 @@ output time and the largest relative change between two runs is reported.
   (linear, gimp, bspline2) at cfl 0.4 and 0.2, and with bspline2 at h/2: which shape carries
   the examples' remaining Delta-t error, and what a smoother shape costs in the cell (about
   30 minutes, most of it the wall at h/2).
+- pile_jitter: the pile example at cfl 0.4 and 0.2, each against a step 1 % shorter, 1 % longer
+  and half as long: whether what half the step changes in the head force is more than the
+  spread of a reading that a 1 % change of the step already moves (about 10 minutes).
 A study, not a test: it prints markdown tables.
 """
 
@@ -509,12 +512,50 @@ SHAPES = ("linear", "gimp", "bspline2")
 PILE_CENTIMETRES = np.arange(14, 27) / 100.0     # every cm of the pile's second half
 
 
-def pile_force_every_cm(t, probes, centimetres=PILE_CENTIMETRES):
-    """The pile's head force [N] averaged within half a cell (6.25 mm) of every one of
-    `centimetres` of penetration [m] (by default 14 to 26 cm)."""
+def pile_force_every_cm(t, probes, centimetres=PILE_CENTIMETRES, window=0.0125):
+    """The pile's head force [N] averaged over `window` of penetration [m] (by default one
+    cell, 12.5 mm) centred on every one of `centimetres` [m] (by default 14 to 26 cm)."""
     force = -(probes["tip_reaction"][:, 1] + probes["shaft_reaction"][:, 1])
     depth = -probes["penetration"][:, 1]
-    return np.asarray([float(force[np.abs(depth - d) <= 0.00625].mean()) for d in centimetres])
+    return np.asarray([float(force[np.abs(depth - d) <= window / 2].mean()) for d in centimetres])
+
+
+JITTER_CENTIMETRES = np.arange(3, 25.01, 0.5) / 100.0   # every 5 mm, windows of up to 4 cells inside the run
+JITTER_WINDOWS = (1, 2, 4)                              # cells of travel a reading averages over
+
+
+def pile_jitter_study(cfls=(0.4, 0.2), nudge=0.01):
+    """The pile example at cfl c, c (1 - nudge), c (1 + nudge) and c / 2 for each c of `cfls`:
+    how far a step 1 % shorter or longer moves the head force (the spread of a reading that
+    is not a smooth function of the step), against how far half the step moves it. The force
+    is read every 5 mm from 3 to 25 cm, averaged over 1, 2 and 4 cells of travel."""
+    import jaxmpm
+
+    print("\n### The pile's head force: a 1 % change of the step against half the step\n")
+    print("Head force (weight included) every 5 mm from 3 to 25 cm, averaged over a window of "
+          "travel; each change against the run at cfl c: range over the readings (rms).\n")
+    print("| c | compared with | window [cells] | change: range | rms | mean |")
+    print("|---|---|---|---|---|---|")
+    base = jaxmpm.load_scene(ROOT / "examples" / "pile_driving.toml")
+    cell = base.grid.cell
+    runs = {}
+
+    def force_at(cfl, window):
+        if cfl not in runs:
+            t, probes, _, seconds = run(base.with_value("scene.cfl", cfl))
+            runs[cfl] = (t, probes)
+            print(f"<!-- cfl {cfl:g}: {seconds:.0f} s -->", flush=True)
+        return pile_force_every_cm(*runs[cfl], JITTER_CENTIMETRES, window * cell)
+
+    for cfl in cfls:
+        for other, label in ((cfl * (1 - nudge), f"cfl {cfl * (1 - nudge):g} (1 % shorter)"),
+                             (cfl * (1 + nudge), f"cfl {cfl * (1 + nudge):g} (1 % longer)"),
+                             (cfl / 2, f"cfl {cfl / 2:g} (half)")):
+            for window in JITTER_WINDOWS:
+                reference = force_at(cfl, window)
+                change = 100 * (force_at(other, window) - reference) / reference
+                print(f"| {cfl:g} | {label} | {window} | {change.min():+.2f} … {change.max():+.2f} % | "
+                      f"{np.sqrt(np.mean(change ** 2)):.2f} % | {change.mean():+.2f} % |", flush=True)
 
 
 def shapes_study(finer_cell=True):
@@ -561,7 +602,8 @@ def shapes_study(finer_cell=True):
 
 
 STUDIES = {"wall": wall_study, "stiff": stiff_study, "subcycled": subcycled_study, "examples": examples_study, "cells": cells_study,
-           "example_cells": example_cells_study, "relaxation": relaxation_study, "shapes": shapes_study}
+           "example_cells": example_cells_study, "relaxation": relaxation_study, "shapes": shapes_study,
+           "pile_jitter": pile_jitter_study}
 
 
 def main():

@@ -375,6 +375,56 @@ def test_a_prescribed_bodys_outline_gives_its_exact_outward_normal():
     assert np.linalg.norm(mid_plane) == pytest.approx(1.0) and abs(mid_plane[0, 1]) == pytest.approx(1.0)
 
 
+def test_a_rounded_outline_turns_its_normal_continuously_round_a_corner():
+    # bodies.rounded_outline moves the surface edges in by r: outline_distances of it gives the
+    # normals of the outline with its corners rounded at r. A node passing a sharp corner (a
+    # pile tip's corner column passing a row of nodes) has its normal jump by the corner's
+    # angle, 90 degrees; rounded, the normal turns in steps bounded by the path's spacing.
+    # Faces keep their own normal; corners next to an edge that is no surface (a pile's side on
+    # the axis) stay sharp. Geometry, exact to round-off.
+    import jax.numpy as jnp
+
+    from jaxmpm.physics.bodies import corner_radius, outline_distances, rounded_outline
+
+    corners = jnp.asarray([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    radius = 0.25
+    rounded = rounded_outline(corners, None, radius)
+    np.testing.assert_allclose(np.asarray(rounded), [[0.25, 0.25], [0.75, 0.25], [0.75, 0.75], [0.25, 0.75]], atol=1e-15)
+    faces = jnp.asarray([[0.5, -0.3], [0.5, 0.0], [0.5, 0.1], [1.4, 0.5], [0.9, 0.5]])
+    np.testing.assert_allclose(np.asarray(outline_distances(rounded, faces)[1]),
+                               [[0, -1], [0, -1], [0, -1], [1, 0], [1, 0]], atol=1e-12)
+    diagonal = math.sqrt(0.5)
+    np.testing.assert_allclose(np.asarray(outline_distances(rounded, jnp.asarray([[1.0, 0.0]]))[1]),
+                               [[diagonal, -diagonal]], atol=1e-12)
+
+    spacing = 0.01
+    path = jnp.stack([jnp.ones(101), jnp.linspace(-0.5, 0.5, 101)], axis=-1)       # down the right side, past (1, 0)
+
+    def largest_turn(outline):
+        normals = np.asarray(outline_distances(outline, path)[1])
+        cosines = np.clip(np.sum(normals[1:] * normals[:-1], axis=-1), -1.0, 1.0)
+        return np.degrees(np.max(np.arccos(cosines)))
+
+    assert largest_turn(corners) == pytest.approx(45.0, abs=1e-6)   # sharp: 90 degrees, half of it on the corner
+    assert largest_turn(rounded) < np.degrees(2 * spacing / radius)               # rounded: 3.7 degrees at most
+
+    # The left edge on the axis (no surface): the corners on it stay sharp, below the tip too.
+    on_the_axis = jnp.asarray([False, False, False, True])       # edge k runs from corner k to k + 1: 3 is the left
+    sharp_side = rounded_outline(corners, on_the_axis, radius)
+    np.testing.assert_allclose(np.asarray(sharp_side), [[0.0, 0.25], [0.75, 0.25], [0.75, 0.75], [0.0, 0.75]], atol=1e-15)
+    below = jnp.asarray([[0.0, -0.2], [0.05, -0.05]])
+    np.testing.assert_allclose(np.asarray(outline_distances(sharp_side, below, on_the_axis)[1]), [[0, -1], [0, -1]],
+                               atol=1e-12)
+
+    # A plate thinner than two radii keeps its faces apart: the radius is at most a quarter
+    # of its width.
+    plate = jnp.asarray([[0.0, 0.0], [1.0, 0.0], [1.0, 0.1], [0.0, 0.1]])
+    assert float(corner_radius(plate, 0.25)) == pytest.approx(0.025)
+    thin = rounded_outline(plate, None, corner_radius(plate, 0.25))
+    np.testing.assert_allclose(np.asarray(outline_distances(thin, jnp.asarray([[0.5, 0.12], [0.5, -0.02]]))[1]),
+                               [[0, 1], [0, -1]], atol=1e-12)
+
+
 def test_outlines_are_convex_and_counter_clockwise():
     from jaxmpm.physics.bodies import convex_outline
 

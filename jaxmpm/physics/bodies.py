@@ -44,6 +44,8 @@ from jaxmpm.physics.contact import interface_impulse, interface_normals, safe_no
 OUTLINE_RESOLUTION = 1e-9    # of an outline's longest edge: nearer than that, a position counts as on it
 TIED_OPPOSITE = 1e-3         # |sum of the tied edges' normals| below this: opposite faces (mid-plane of a
                              # slab), whose mean has no direction; the first of them is taken
+CORNER_RADIUS = 1.0          # cells: a prescribed body meets free bodies with its corners rounded this much
+                             # (`rounded_outline`; at most a quarter of the body's width)
 NEWTON_ITERATIONS = 3   # 2-3 reach round-off (the same wall motion as 8, bit for bit or within
                         # 1e-12) on retaining_wall, the wall twin and the small wall of docs/convergence.md
 
@@ -408,6 +410,44 @@ def outline_distances(corners, positions, excluded=None):
     return jnp.where(outside, safe_norm(away), depth), jnp.where(outside[..., None], unit(away), nearest_edge)
 
 
+def outline_width(corners):
+    """The width of a convex outline (K, 2): its least extent across any edge, min over the
+    edges of the farthest corner's distance behind it."""
+    edges = jnp.roll(corners, -1, axis=0) - corners
+    normals = jnp.stack([edges[:, 1], -edges[:, 0]], axis=-1) / jnp.sqrt(edges[:, 0] ** 2 + edges[:, 1] ** 2)[:, None]
+    behind = jnp.sum((corners[:, None, :] - corners[None, :, :]) * normals[:, None, :], axis=-1)   # (edge, corner)
+    return jnp.min(jnp.max(behind, axis=1))
+
+
+def rounded_outline(corners, excluded, radius):
+    """(K, 2) corners of the convex outline with each surface edge moved inward by `radius`
+    (edges that are no surface, `excluded`, stay where they are). `outline_distances` of it
+    gives, at a position, the direction from its nearest point: the outward normal of the
+    outline with its corners between surface edges rounded at `radius`, which turns
+    continuously round a corner instead of jumping by the corner's angle (its distance is the
+    rounded outline's plus `radius`). Faces keep their own normal. Corner k, between edges
+    k - 1 and k, is where their moved lines n . x = n . a_k - r meet; where they are parallel
+    (a corner on a straight edge), it moves along the normal."""
+    edges = jnp.roll(corners, -1, axis=0) - corners
+    normals = jnp.stack([edges[:, 1], -edges[:, 0]], axis=-1) / jnp.sqrt(edges[:, 0] ** 2 + edges[:, 1] ** 2)[:, None]
+    shifts = jnp.where(excluded, 0.0, radius) if excluded is not None else jnp.full(len(corners), radius)
+    before, shift_before = jnp.roll(normals, 1, axis=0), jnp.roll(shifts, 1)
+    first = jnp.sum(before * corners, axis=-1) - shift_before
+    second = jnp.sum(normals * corners, axis=-1) - shifts
+    determinant = before[:, 0] * normals[:, 1] - before[:, 1] * normals[:, 0]
+    turning = jnp.abs(determinant) > 1e-9
+    determinant = jnp.where(turning, determinant, 1.0)
+    met = jnp.stack([(first * normals[:, 1] - before[:, 1] * second) / determinant,
+                     (before[:, 0] * second - first * normals[:, 0]) / determinant], axis=-1)
+    return jnp.where(turning[:, None], met, corners - shifts[:, None] * normals)
+
+
+def corner_radius(corners, cell):
+    """The radius a prescribed body's corners are rounded at: CORNER_RADIUS cells, at most a
+    quarter of the outline's width (so that a thin plate keeps its two faces apart)."""
+    return jnp.minimum(CORNER_RADIUS * cell, outline_width(corners) / 4.0)
+
+
 def outline_normals(corners, positions, excluded=None):
     """The outward unit normals (..., 2) of `outline_distances`."""
     return outline_distances(corners, positions, excluded)[1]
@@ -476,9 +516,13 @@ def union_of(parts, tolerance):
 
 def prescribed_outline_normals(structure, state, positions):
     """{field: (nx, ny, 2)} outward normals at the nodes `positions` of every prescribed body
-    with a convex outline, from its outline at the state's time (`outline_distances`, its edges
-    on held grid edges and its joined edges left out): the normal its contacts use
-    (`contact.interface_normals`). Bodies joined to it (`BodyBlock.partners`: prescribed bodies
+    with a convex outline, from its outline at the state's time with its corners rounded at
+    `corner_radius` (`rounded_outline`, `outline_distances`; its edges on held grid edges and
+    its joined edges left out, and not rounded): the normal its contacts use
+    (`contact.interface_normals`). The rounding spreads the turn of the normal at a corner over
+    about a cell of the body's travel: with a sharp corner, the node row a pile's tip passed
+    turned at once from under the tip to beside it, and the head force fell by a third at
+    every cell of penetration (docs/convergence.md). Bodies joined to it (`BodyBlock.partners`: prescribed bodies
     that share an edge with it and move with it) make one structure with it, and all its parts
     take the normal of their union (`union_of`, the parts in field order), so that sand
     flowing past a pile's tip onto its shaft meets the pile's side, not the shaft's lower end."""
@@ -487,7 +531,9 @@ def prescribed_outline_normals(structure, state, positions):
         if block.kinematics != "prescribed" or block.outline is None:
             continue
         corners = outline_now(block, state, positions.dtype)
-        measured[block.field] = (block, outline_distances(corners, positions, no_surface(block, corners, structure)))
+        excluded = no_surface(block, corners, structure)
+        rounded = rounded_outline(corners, excluded, corner_radius(corners, structure.layout.cell))
+        measured[block.field] = (block, outline_distances(rounded, positions, excluded))
     tolerance = OUTLINE_RESOLUTION * structure.layout.cell
     return {field: union_of([measured[part][1] for part in sorted((field, *block.partners))], tolerance)[1]
             for field, (block, _) in measured.items()}
