@@ -21,7 +21,8 @@ once per step by an impulse J on a and -J on b, so momentum is kept exactly:
 Normals. Against a prescribed body, the normal is that body's own outward normal: its surface
 does not deform, and where its outline is convex it is known exactly (`bodies.outline_normals`:
 at a node inside or on the outline the normal of its nearest edge, outside it the direction
-from the nearest point of the outline, rounded at corners). The normal of its points' mass
+from the nearest point of the outline; the corners rounded at a cell, `bodies.rounded_outline`,
+so that a node passing a corner sees the normal turn, not jump). The normal of its points' mass
 gradient, used for other outlines, turns each time a row of the body's points crosses a cell
 edge; a pile driven through many cells then met sand with a normal that flickered, and its
 force shifted by up to 3 % when the step was halved (docs/convergence.md). Between two free
