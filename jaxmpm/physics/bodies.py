@@ -410,11 +410,17 @@ def outline_distances(corners, positions, excluded=None):
     return jnp.where(outside, safe_norm(away), depth), jnp.where(outside[..., None], unit(away), nearest_edge)
 
 
+def edge_normals(corners):
+    """(K, 2) outward unit normals of the edges of an outline (K, 2) whose corners run
+    counter-clockwise; edge k runs from corner k to corner k + 1."""
+    edges = jnp.roll(corners, -1, axis=0) - corners
+    return jnp.stack([edges[:, 1], -edges[:, 0]], axis=-1) / jnp.sqrt(edges[:, 0] ** 2 + edges[:, 1] ** 2)[:, None]
+
+
 def outline_width(corners):
     """The width of a convex outline (K, 2): its least extent across any edge, min over the
     edges of the farthest corner's distance behind it."""
-    edges = jnp.roll(corners, -1, axis=0) - corners
-    normals = jnp.stack([edges[:, 1], -edges[:, 0]], axis=-1) / jnp.sqrt(edges[:, 0] ** 2 + edges[:, 1] ** 2)[:, None]
+    normals = edge_normals(corners)
     behind = jnp.sum((corners[:, None, :] - corners[None, :, :]) * normals[:, None, :], axis=-1)   # (edge, corner)
     return jnp.min(jnp.max(behind, axis=1))
 
@@ -428,8 +434,7 @@ def rounded_outline(corners, excluded, radius):
     rounded outline's plus `radius`). Faces keep their own normal. Corner k, between edges
     k - 1 and k, is where their moved lines n . x = n . a_k - r meet; where they are parallel
     (a corner on a straight edge), it moves along the normal."""
-    edges = jnp.roll(corners, -1, axis=0) - corners
-    normals = jnp.stack([edges[:, 1], -edges[:, 0]], axis=-1) / jnp.sqrt(edges[:, 0] ** 2 + edges[:, 1] ** 2)[:, None]
+    normals = edge_normals(corners)
     shifts = jnp.where(excluded, 0.0, radius) if excluded is not None else jnp.full(len(corners), radius)
     before, shift_before = jnp.roll(normals, 1, axis=0), jnp.roll(shifts, 1)
     first = jnp.sum(before * corners, axis=-1) - shift_before
@@ -522,10 +527,11 @@ def prescribed_outline_normals(structure, state, positions):
     (`contact.interface_normals`). The rounding spreads the turn of the normal at a corner over
     about a cell of the body's travel: with a sharp corner, the node row a pile's tip passed
     turned at once from under the tip to beside it, and the head force fell by a third at
-    every cell of penetration (docs/convergence.md). Bodies joined to it (`BodyBlock.partners`: prescribed bodies
-    that share an edge with it and move with it) make one structure with it, and all its parts
-    take the normal of their union (`union_of`, the parts in field order), so that sand
-    flowing past a pile's tip onto its shaft meets the pile's side, not the shaft's lower end."""
+    every cell of penetration (docs/convergence.md). Bodies joined to it (`BodyBlock.partners`:
+    prescribed bodies that share an edge with it and move with it) make one structure with it,
+    and all its parts take the normal of their union (`union_of`, the parts in field order), so
+    that sand flowing past a pile's tip onto its shaft meets the pile's side, not the shaft's
+    lower end."""
     measured = {}
     for block in kinematic_blocks(structure):
         if block.kinematics != "prescribed" or block.outline is None:
