@@ -424,6 +424,18 @@ def test_a_rounded_outline_turns_its_normal_continuously_round_a_corner():
     np.testing.assert_allclose(np.asarray(outline_distances(thin, jnp.asarray([[0.5, 0.12], [0.5, -0.02]]))[1]),
                                [[0, 1], [0, -1]], atol=1e-12)
 
+    # Gradients with respect to the corners (a prescribed velocity moves them) are finite on
+    # the rounded corner, on a face and on the moved-in outline itself.
+    import jax
+
+    def spread(shift, position):
+        moved = corners + shift
+        normal = outline_distances(rounded_outline(moved, None, corner_radius(moved, 1.0)), position)[1]
+        return jnp.sum(normal * jnp.asarray([0.3, 0.7]))
+
+    for position in ([1.0, 0.0], [0.5, 0.0], [0.75, 0.25], [1.2, -0.2]):
+        assert np.all(np.isfinite(np.asarray(jax.grad(spread)(jnp.zeros(2), jnp.asarray(position)))))
+
 
 def test_outlines_are_convex_and_counter_clockwise():
     from jaxmpm.physics.bodies import convex_outline
