@@ -32,21 +32,25 @@ def shortened(scene, dt):
     return dataclasses.replace(scene, dt=dt, duration=STEPS * dt, output_every=STEPS * dt)
 
 
-def example_values(path):
-    """{key: array} of one example after STEPS steps: each probe's history, and the final
-    positions, velocities and stresses of its points."""
+def example_run(path):
+    """({key: array}, final state) of one example after STEPS steps: the values are each
+    probe's history and the final positions, velocities and stresses of its points."""
     import jaxmpm
 
     scene = jaxmpm.load_scene(path)
     dt = jaxmpm.Simulation(scene).dt
     sim = jaxmpm.Simulation(shortened(scene, dt))
     assert abs(sim.dt - dt) <= 1e-12 * dt and sim.steps == STEPS
-    probes = sim.probes()
-    final = sim.final_state()
+    probes, final = sim.probes_and_final_state()
     values = {f"probe/{name}": np.asarray(history) for name, history in probes.items()}
     values.update(x=np.asarray(final.particles.x), v=np.asarray(final.particles.v),
                   stress=np.asarray(final.particles.stress))
-    return {f"{path.stem}/{key}": value for key, value in values.items()}
+    return {f"{path.stem}/{key}": value for key, value in values.items()}, final
+
+
+def example_values(path):
+    """{key: array} of one example after STEPS steps (`example_run`)."""
+    return example_run(path)[0]
 
 
 if __name__ == "__main__":
