@@ -8,8 +8,8 @@ on disk (tests/test_cli_and_output.py tests the cache itself in its own director
 
 The suite spends most of its time compiling small scenes that then run for a second or two,
 so it asks XLA:CPU for its classic fusion emitters (`--xla_cpu_use_fusion_emitters=false`),
-which compile the step's programs in about two thirds of the time and run them about half as
-fast again; the values agree to round-off (tests/test_example_references.py holds them to
+which compile the step's programs in about two thirds of the time and run them 1.3-1.6 times
+slower (docs/benchmarks.md); the values agree to round-off (tests/test_example_references.py holds them to
 1e-9). Users' runs keep XLA's defaults. The flag is set only if this jaxlib accepts it (an
 unknown XLA flag aborts the process), and not at all if XLA_FLAGS already names it."""
 

@@ -1,7 +1,7 @@
 """Every example file loads and validates: each scene reads and round-trips, each calibration
 file is read with its scene and observations, each design file with its candidates. Each
-scene's first steps run with its own settings in tests/test_example_references.py, and under
-every preset in tests/test_presets.py."""
+scene's first steps run with its own settings in tests/test_example_references.py, and four
+of them under each preset that compiles other code in tests/test_presets.py."""
 
 import pathlib
 
