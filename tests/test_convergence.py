@@ -419,8 +419,8 @@ def test_a_rounded_outline_turns_its_normal_continuously_round_a_corner():
     # A plate thinner than two radii keeps its faces apart: the radius is at most a quarter
     # of its width.
     plate = jnp.asarray([[0.0, 0.0], [1.0, 0.0], [1.0, 0.1], [0.0, 0.1]])
-    assert float(corner_radius(plate, 0.25)) == pytest.approx(0.025)
-    thin = rounded_outline(plate, None, corner_radius(plate, 0.25))
+    assert float(corner_radius(plate, 0.25, 1.0)) == pytest.approx(0.025)
+    thin = rounded_outline(plate, None, corner_radius(plate, 0.25, 1.0))
     np.testing.assert_allclose(np.asarray(outline_distances(thin, jnp.asarray([[0.5, 0.12], [0.5, -0.02]]))[1]),
                                [[0, 1], [0, -1]], atol=1e-12)
 
@@ -430,11 +430,46 @@ def test_a_rounded_outline_turns_its_normal_continuously_round_a_corner():
 
     def spread(shift, position):
         moved = corners + shift
-        normal = outline_distances(rounded_outline(moved, None, corner_radius(moved, 1.0)), position)[1]
+        normal = outline_distances(rounded_outline(moved, None, corner_radius(moved, 1.0, 1.0)), position)[1]
         return jnp.sum(normal * jnp.asarray([0.3, 0.7]))
 
     for position in ([1.0, 0.0], [0.5, 0.0], [0.75, 0.25], [1.2, -0.2]):
         assert np.all(np.isfinite(np.asarray(jax.grad(spread)(jnp.zeros(2), jnp.asarray(position)))))
+
+
+def test_numerics_corner_radius_sets_the_rounding_and_zero_keeps_the_corners_sharp():
+    # numerics.corner_radius (in cells) reaches the contact normal of a prescribed body: 0 gives
+    # the sharp outline's normals at every node, the default (1 cell) turns them near the
+    # punch's corners only. A value round-trips through the scene file, the default is not
+    # written, and a negative radius is refused with one sentence naming the key.
+    from jaxmpm.physics.bodies import no_surface, node_positions, outline_distances, outline_now, prescribed_outline_normals
+
+    scene = punch()
+    normals = {}
+    for radius in (0.0, 1.0):
+        sim = Simulation(scene.with_value("numerics.corner_radius", radius))
+        state = sim.initial_state()
+        positions = node_positions(sim.structure.layout, state.particles.x.dtype)
+        (normal,) = prescribed_outline_normals(sim.structure, state, positions).values()
+        normals[radius] = np.asarray(normal)
+    block = next(block for block in sim.structure.bodies if block.kinematics == "prescribed")
+    corners = outline_now(block, state, positions.dtype)
+    sharp = outline_distances(corners, positions, no_surface(block, corners, sim.structure))[1]
+    np.testing.assert_allclose(normals[0.0], np.asarray(sharp), rtol=0.0, atol=1e-12)
+    turned = np.degrees(np.arccos(np.clip(np.sum(normals[0.0] * normals[1.0], axis=-1), -1.0, 1.0)))
+    # nodes whose nearest point of the outline lies on a face more than a cell (> the radius,
+    # 0.015 m here) from its corners: within the punch's x or y range shrunk by a cell
+    x, y = np.moveaxis(np.asarray(positions), -1, 0)
+    (x0, y0), (x1, y1) = np.min(np.asarray(corners), axis=0), np.max(np.asarray(corners), axis=0)
+    cell = sim.structure.layout.cell
+    facing = ((x > x0 + cell) & (x < x1 - cell)) | ((y > y0 + cell) & (y < y1 - cell))
+    assert facing.sum() > 10 and turned[facing].max() < 1e-6
+    assert turned[~facing].max() > 10.0
+    assert "corner_radius" not in scene.to_dict()["numerics"]
+    assert Scene.from_toml(scene.with_value("numerics.corner_radius", 0.5).to_toml()).numerics.corner_radius == 0.5
+    with pytest.raises(SceneError) as error:
+        scene.with_value("numerics.corner_radius", -1.0)
+    assert "numerics.corner_radius = -1.0" in str(error.value) and str(error.value).count(". ") == 0
 
 
 def test_outlines_are_convex_and_counter_clockwise():

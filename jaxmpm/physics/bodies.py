@@ -44,8 +44,6 @@ from jaxmpm.physics.contact import interface_impulse, interface_normals, safe_no
 OUTLINE_RESOLUTION = 1e-9    # of an outline's longest edge: nearer than that, a position counts as on it
 TIED_OPPOSITE = 1e-3         # |sum of the tied edges' normals| below this: opposite faces (mid-plane of a
                              # slab), whose mean has no direction; the first of them is taken
-CORNER_RADIUS = 1.0          # cells: a prescribed body meets free bodies with its corners rounded this much
-                             # (`rounded_outline`; at most a quarter of the body's width)
 NEWTON_ITERATIONS = 3   # 2-3 reach round-off (the same wall motion as 8, bit for bit or within
                         # 1e-12) on retaining_wall, the wall twin and the small wall of docs/convergence.md
 
@@ -447,10 +445,11 @@ def rounded_outline(corners, excluded, radius):
     return jnp.where(turning[:, None], met, corners - shifts[:, None] * normals)
 
 
-def corner_radius(corners, cell):
-    """The radius a prescribed body's corners are rounded at: CORNER_RADIUS cells, at most a
-    quarter of the outline's width (so that a thin plate keeps its two faces apart)."""
-    return jnp.minimum(CORNER_RADIUS * cell, outline_width(corners) / 4.0)
+def corner_radius(corners, cell, cells):
+    """The radius a prescribed body's corners are rounded at: `cells` cells (the scene's
+    numerics.corner_radius), at most a quarter of the outline's width (so that a thin plate
+    keeps its two faces apart)."""
+    return jnp.minimum(cells * cell, outline_width(corners) / 4.0)
 
 
 def outline_normals(corners, positions, excluded=None):
@@ -538,7 +537,7 @@ def prescribed_outline_normals(structure, state, positions):
             continue
         corners = outline_now(block, state, positions.dtype)
         excluded = no_surface(block, corners, structure)
-        rounded = rounded_outline(corners, excluded, corner_radius(corners, structure.layout.cell))
+        rounded = rounded_outline(corners, excluded, corner_radius(corners, structure.layout.cell, structure.corner_radius))
         measured[block.field] = (block, outline_distances(rounded, positions, excluded))
     tolerance = OUTLINE_RESOLUTION * structure.layout.cell
     return {field: union_of([measured[part][1] for part in sorted((field, *block.partners))], tolerance)[1]

@@ -140,7 +140,8 @@ class Structure:
     `Simulation.forward_only`) or "reverse" (never forward mode: kernels without one,
     `jaxmpm.kernels.transposes`; `Simulation.reverse_only`); damps: what local damping acts on,
     "motion" (the nodes' velocity) or "deformation" (their velocity relative to the body's mean,
-    for a subcycled body alone on the grid: `local_damping`).
+    for a subcycled body alone on the grid: `local_damping`); corner_radius: in cells, the
+    rounding of prescribed bodies' corners in their contact normal (`bodies.corner_radius`).
     """
 
     layout: GridLayout
@@ -157,6 +158,7 @@ class Structure:
     axisymmetric: bool = False
     derivatives: str = "any"
     damps: str = "motion"
+    corner_radius: float = 1.0
 
     @property
     def has_kinematic_bodies(self):

@@ -190,6 +190,7 @@ class Simulation:
             interfaces=interfaces,
             point_spacing=scene.grid.cell / scene.numerics.ppc,
             axisymmetric=scene.geometry == "axisymmetric",
+            corner_radius=scene.numerics.corner_radius,
         )
         self.params = scene_parameters(scene)
         self.step = make_step(self.structure)

@@ -67,6 +67,7 @@ DEFAULT_PRESET = "balanced"
 # examples, and says why it is not yet the default (undamped elastic bodies keep vibrating, and
 # creep on slopes; a point that leaves a granular flow glides on a no-slip base).
 DEFAULT_RELAXATION = 0.0
+DEFAULT_CORNER_RADIUS = 1.0
 DEFAULT_CFL = 0.4
 
 
@@ -79,7 +80,9 @@ class Numerics:
     from velocities re-mapped after the particle update, which keeps nodes with tiny mass from
     polluting stresses) or "usl". relaxation: with APIC, the time over which the points'
     own velocity fades into the grid's, in cell crossings of the slowest free body's p-wave
-    (0: plain APIC, whose dissipation grows as dt shrinks).
+    (0: plain APIC, whose dissipation grows as dt shrinks). corner_radius: the radius, in cells,
+    at which a prescribed body's outline has its corners rounded where it meets free bodies (0:
+    sharp corners; `bodies.rounded_outline`).
     """
 
     preset: str = DEFAULT_PRESET
@@ -91,6 +94,7 @@ class Numerics:
     damping: float = 0.0
     update: str | None = None
     relaxation: float = DEFAULT_RELAXATION
+    corner_radius: float = DEFAULT_CORNER_RADIUS
     # The values the preset filled in (not given by the user): `to_dict` leaves them out, and
     # `dataclasses.replace(numerics, preset=...)` fills them again from the new preset.
     filled: dict | None = dataclasses.field(default=None, compare=False, repr=False)
@@ -107,11 +111,12 @@ class Numerics:
         object.__setattr__(self, "filled", filled)
 
     def given(self) -> dict:
-        """The choices this Numerics states itself: its preset, damping, a relaxation other than
-        the default, and every override."""
+        """The choices this Numerics states itself: its preset, damping, a relaxation and a
+        corner radius other than the defaults, and every override."""
+        defaults = {"relaxation": DEFAULT_RELAXATION, "corner_radius": DEFAULT_CORNER_RADIUS}
         return {field.name: getattr(self, field.name) for field in dataclasses.fields(self)
                 if field.name != "filled" and field.name not in self.filled
-                and not (field.name == "relaxation" and self.relaxation == DEFAULT_RELAXATION)}
+                and not (field.name in defaults and getattr(self, field.name) == defaults[field.name])}
 
 
 @dataclasses.dataclass(frozen=True)
