@@ -956,3 +956,39 @@ def test_the_driver_refuses_out_of_plane_shear_and_an_asymmetric_stress():
     stress0[0, 1] = 10.0
     with pytest.raises(SceneError, match=r"stress0 is not symmetric: .* up to 10"):
         jaxmpm.drive(table, np.zeros((4, 3, 3)), 1e-3, stress0)
+
+
+def test_stress_substeps_make_the_perzyna_update_converge_at_first_order_within_a_step():
+    # numerics.stress_substeps = K: each step's update is K updates of dt / K with the step's L
+    # (materials.base.points_update; Sloan 1987's substepping at a fixed count). The Perzyna
+    # backward Euler is first order in its own step, and in a flow a point's strain rate changes
+    # from step to step, so the update never reaches the steady state where backward Euler is
+    # exact. Here: the sand of examples/retaining_wall.toml (E = 5 MPa, fluidity 5 1/s) with
+    # N = 3, at p = 5 kPa, sheared at a rate that changes every step (1 +- 0.8 1/s) at that
+    # example's step; the shear stress after 200 steps against 256 updates a step (each step's
+    # L repeated at dt / 256). The error must shrink about K-fold.
+    from jaxmpm.materials.base import points_update
+
+    material = DruckerPrager(density=1800.0, young=5e6, poisson=0.3, friction_angle=30.0, fluidity=5.0, exponent=3.0)
+    law, dt, steps = material.law, 8.17e-5, 200
+    params = jax.tree_util.tree_map(jnp.asarray, material_parameters(material))
+    gradients = np.zeros((steps, 1, 3, 3))
+    gradients[:, 0, 0, 1] = 1.0 + 0.8 * np.sin(2.0 * np.arange(steps))       # 1/s, a new value every step
+
+    @functools.partial(jax.jit, static_argnums=(1, 2))
+    def final_shear(gradients, step, substeps):
+        update = points_update(law, step, substeps)
+        start = (-5e3 * jnp.eye(3)[None], law.init_state(1, jnp.float64))
+        (stress, _), _ = jax.lax.scan(lambda carry, g: (update(params, *carry[:1], g, carry[1]), None), start, gradients)
+        return stress[0, 0, 1]
+
+    def repeated(times):
+        return float(final_shear(np.repeat(gradients, times, axis=0), dt / times, 1))
+
+    reference = repeated(256)
+    substepped = np.array([float(final_shear(gradients, dt, k)) for k in (1, 2, 4, 8)])
+    assert substepped[2] == pytest.approx(repeated(4), rel=1e-12)       # K substeps: K updates of dt / K
+    errors = np.abs(substepped - reference)
+    assert errors[0] > 1e-3 * abs(reference), errors                     # one update a step is off
+    orders = np.log2(errors[:-1] / errors[1:])
+    assert np.all((orders > 0.8) & (orders < 1.3)), (errors, orders)

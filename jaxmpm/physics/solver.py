@@ -141,7 +141,9 @@ class Structure:
     `jaxmpm.kernels.transposes`; `Simulation.reverse_only`); damps: what local damping acts on,
     "motion" (the nodes' velocity) or "deformation" (their velocity relative to the body's mean,
     for a subcycled body alone on the grid: `local_damping`); corner_radius: in cells, the
-    rounding of prescribed bodies' corners in their contact normal (`bodies.corner_radius`).
+    rounding of prescribed bodies' corners in their contact normal (`bodies.corner_radius`);
+    stress_substeps: the updates of dt / stress_substeps each step's stress update of a free body
+    that can yield is made of (`materials.base.points_update`).
     """
 
     layout: GridLayout
@@ -159,6 +161,7 @@ class Structure:
     derivatives: str = "any"
     damps: str = "motion"
     corner_radius: float = 1.0
+    stress_substeps: int = 1
 
     @property
     def has_kinematic_bodies(self):
@@ -330,9 +333,10 @@ def keeps_velocity_gradient(structure):
     return structure.layout.shape.support == 3
 
 
-def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
+def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False, substeps=1):
     """Each run of free bodies of one material (`material_runs`) updates its points with the
-    material's law; volumes follow det(I + dt L). Prescribed and rigid bodies keep their stress
+    material's law, in `substeps` updates of dt / substeps if it can yield (`stress_substeps`);
+    volumes follow det(I + dt L). Prescribed and rigid bodies keep their stress
     and volume, and so do subcycled ones here (their substeps update them)."""
     stresses, histories, stretches = [], [], []
     # det(I + dt L), written out (cheaper than an LU per point): the in-plane 2x2 block times
@@ -350,7 +354,7 @@ def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
             histories.extend(run_histories)
             stretches.append(jnp.ones_like(stretch[points]))
             continue
-        update = points_update_voigt(first.law, dt)
+        update = points_update_voigt(first.law, dt, stress_substeps(first.law, substeps))
         stress, history = update(params[first.material_name], particles.stress_voigt[points], gradient[points],
                                  joined(run_histories))
         stresses.append(stress)
@@ -363,6 +367,13 @@ def update_stress(params, particles, gradient, bodies, dt, axisymmetric=False):
         history=tuple(histories),
         volume=particles.volume * stretch,
     )
+
+
+def stress_substeps(law, substeps):
+    """The updates a step's stress update of `law` is made of: `substeps` (numerics.stress_substeps)
+    for a law that can yield, 1 for one that cannot (an elastic update is exact for any step's
+    L; it gains nothing)."""
+    return substeps if law.yields else 1
 
 
 def material_runs(bodies):
@@ -410,10 +421,11 @@ def kept_grid_bytes(structure, points, itemsize):
 
 def kept_solve_bytes(structure, dtype):
     """Bytes of the values one step names KEPT_SOLVES: the roots of implicit equations a law
-    solves at each point (`law.kept_solves_per_point`, e.g. the Perzyna root), which a
+    solves at each point (`law.kept_solves_per_point`, e.g. the Perzyna root, once per stress substep), which a
     checkpointed step keeps for its reverse mode."""
     itemsize = np.dtype(dtype).itemsize
-    return sum((block.stop - block.start) * block.law.kept_solves_per_point * itemsize
+    return sum((block.stop - block.start) * block.law.kept_solves_per_point
+               * stress_substeps(block.law, structure.stress_substeps) * itemsize
                for block in structure.bodies if block.kinematics == "free")
 
 
@@ -533,7 +545,8 @@ def make_step(structure: Structure):
             affine = stack_last([rate[0], rate[1], rate[3], rate[4]]).reshape(-1, 2, 2)
             particles = particles.replace(affine=affine)
         particles = jax.named_call(update_stress, name="update_stress")(
-            params["materials"], particles, gradient, structure.bodies, dt, structure.axisymmetric
+            params["materials"], particles, gradient, structure.bodies, dt, structure.axisymmetric,
+            structure.stress_substeps
         )
         for index, block in subcycled:
             particles = put_back(particles, index, block, ended[block.name])

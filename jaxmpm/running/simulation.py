@@ -191,6 +191,7 @@ class Simulation:
             point_spacing=scene.grid.cell / scene.numerics.ppc,
             axisymmetric=scene.geometry == "axisymmetric",
             corner_radius=scene.numerics.corner_radius,
+            stress_substeps=scene.numerics.stress_substeps,
         )
         self.params = scene_parameters(scene)
         self.step = make_step(self.structure)

@@ -68,6 +68,7 @@ DEFAULT_PRESET = "balanced"
 # creep on slopes; a point that leaves a granular flow glides on a no-slip base).
 DEFAULT_RELAXATION = 0.0
 DEFAULT_CORNER_RADIUS = 1.0
+DEFAULT_STRESS_SUBSTEPS = 1
 DEFAULT_CFL = 0.4
 
 
@@ -82,7 +83,8 @@ class Numerics:
     own velocity fades into the grid's, in cell crossings of the slowest free body's p-wave
     (0: plain APIC, whose dissipation grows as dt shrinks). corner_radius: the radius, in cells,
     at which a prescribed body's outline has its corners rounded where it meets free bodies (0:
-    sharp corners; `bodies.rounded_outline`).
+    sharp corners; `bodies.rounded_outline`). stress_substeps: the updates of dt / stress_substeps
+    each step's stress update of a body that can yield is made of (`materials.base.points_update`).
     """
 
     preset: str = DEFAULT_PRESET
@@ -95,6 +97,7 @@ class Numerics:
     update: str | None = None
     relaxation: float = DEFAULT_RELAXATION
     corner_radius: float = DEFAULT_CORNER_RADIUS
+    stress_substeps: int = DEFAULT_STRESS_SUBSTEPS
     # The values the preset filled in (not given by the user): `to_dict` leaves them out, and
     # `dataclasses.replace(numerics, preset=...)` fills them again from the new preset.
     filled: dict | None = dataclasses.field(default=None, compare=False, repr=False)
@@ -113,7 +116,8 @@ class Numerics:
     def given(self) -> dict:
         """The choices this Numerics states itself: its preset, damping, a relaxation and a
         corner radius other than the defaults, and every override."""
-        defaults = {"relaxation": DEFAULT_RELAXATION, "corner_radius": DEFAULT_CORNER_RADIUS}
+        defaults = {"relaxation": DEFAULT_RELAXATION, "corner_radius": DEFAULT_CORNER_RADIUS,
+                    "stress_substeps": DEFAULT_STRESS_SUBSTEPS}
         return {field.name: getattr(self, field.name) for field in dataclasses.fields(self)
                 if field.name != "filled" and field.name not in self.filled
                 and not (field.name in defaults and getattr(self, field.name) == defaults[field.name])}
