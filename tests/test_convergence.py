@@ -79,6 +79,51 @@ def test_plain_apic_drifts_with_the_time_step():
     assert abs(coarse[-1] - fine[-1]) / abs(fine[-1]) > 0.10
 
 
+def test_stress_substeps_converge_a_viscoplastic_walls_motion_at_first_order():
+    # numerics.stress_substeps = K: the Perzyna update (backward Euler, first order in its own
+    # step) made of K updates of dt / K. A viscoplastic backfill (fluidity 0.5 1/s, N = 3: the
+    # relaxation of its overstress lasts a few steps) behind the small wall: against K = 16,
+    # the wall top's error at K = 4 must be about a quarter of that at K = 1 (first order:
+    # (1/4 - 1/16) / (1 - 1/16) = 0.2; measured against K = 32: 0.44, 0.27, 0.14 mm at
+    # K = 1, 2, 4 after 0.12 s, a first-order error reached from K = 2 on). This error is what made the retaining wall example move by
+    # 1.4 % per halving of dt with K = 1, 0.3 % with K = 4 (docs/convergence.md).
+    scene = small_wall(duration=0.12)
+    sand = dataclasses.replace(scene.materials["sand"], fluidity=0.5, exponent=3.0)
+    scene = dataclasses.replace(scene, materials={**scene.materials, "sand": sand})
+    tops = {k: wall_top(scene.with_value("numerics.stress_substeps", k)) for k in (1, 4, 16)}
+    moving = np.abs(tops[16]) > 1e-3
+    assert moving.sum() >= 4
+    one, four = (np.abs(tops[k] - tops[16])[moving] for k in (1, 4))
+    assert one[-1] > 0.05 * abs(tops[16][-1])              # one update a step is far off: 17 % at 0.12 s
+    # the ratio falls towards first order's 0.2 as the error grows (0.48, 0.38, 0.33, 0.28)
+    assert np.all(four < 0.5 * one) and four[-1] < 0.35 * one[-1], (one, four)
+
+
+def test_gradients_through_stress_substeps_match_finite_differences():
+    # Reverse mode through the substeps (a loop of K Perzyna solves in each step, whose roots a
+    # checkpointed step keeps: K values a point) on the viscoplastic wall of the test above over
+    # a short release: d(mean top displacement)/d(fluidity, exponent) against central
+    # differences with relative step 1e-6.
+    import jax.numpy as jnp
+
+    from jaxmpm.physics.solver import kept_solve_bytes
+
+    scene = small_wall(duration=0.02)
+    sand = dataclasses.replace(scene.materials["sand"], fluidity=0.5, exponent=3.0)
+    sim = Simulation(dataclasses.replace(scene, materials={**scene.materials, "sand": sand})
+                     .with_value("numerics.stress_substeps", 3))
+    sand_points = sim.body_slices[0][1] - sim.body_slices[0][0]
+    assert kept_solve_bytes(sim.structure, np.float64) == 3 * sand_points * 8
+
+    def loss(params):
+        return jnp.mean(sim.probes(params)["top"][:, 0])
+
+    reverse_mode_against_central_differences(sim, loss, [
+        ("sand.fluidity", 0.5, ("materials", "sand", "fluidity")),
+        ("sand.exponent", 3.0, ("materials", "sand", "exponent")),
+    ], rel=1e-4)
+
+
 STIFF_DURATION = 0.08       # s: four outputs with the wall moving (it has moved mm by the first)
 
 

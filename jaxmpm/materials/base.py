@@ -100,9 +100,13 @@ def points_update(law, dt, substeps=1):
     count): a law whose update is first order in its step (the Perzyna backward Euler) is then
     that many times more accurate within the step, whatever the grid's step."""
     def one_point(params, stress, velocity_gradient, state):
-        for _ in range(substeps):
-            stress, state = law.update(params, stress, velocity_gradient, dt / substeps, state)
-        return stress, state
+        if substeps == 1:
+            return law.update(params, stress, velocity_gradient, dt, state)
+
+        def substep(_, carry):
+            return law.update(params, *carry[:1], velocity_gradient, dt / substeps, carry[1])
+
+        return jax.lax.fori_loop(0, substeps, substep, (stress, state))
 
     return jax.vmap(one_point, in_axes=(None, 0, 0, 0))
 
