@@ -1,7 +1,7 @@
 """The `jaxmpm` command.
 
     jaxmpm run SCENE.toml [-o OUT.h5] [--set sand.friction_angle=32 ...] [--resume] [--quiet]
-               [--refine dt | cell | relaxation ...]
+               [--refine dt | cell | relaxation | stress ...]
     jaxmpm check SCENE.toml [--set ...] [--quick]
     jaxmpm calibrate CONFIG.toml [-o FIT.h5] [--resume] [--quiet]   (added by inverse.command)
     jaxmpm design DESIGN.toml [-o OUT.h5 | .csv | .png]             (added by inverse.design_command)
@@ -69,8 +69,9 @@ def build_parser():
                      help="continue the interrupted run in OUTPUT (same scene and --set values)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.add_argument("--refine", action="append", default=[], choices=REFINEMENTS,
-                     help="after the run, run the scene again with dt halved (or the cell halved, or the "
-                          "relaxation doubled), write it beside OUTPUT as OUTPUT-dt.h5 (-cell, -relaxation) "
+                     help="after the run, run the scene again with dt halved (or the cell halved, the "
+                          "relaxation doubled, the stress substeps doubled), write it beside OUTPUT as "
+                          "OUTPUT-dt.h5 (-cell, -relaxation, -stress) "
                           "and print how far each probe moved; repeatable")
     check = commands.add_parser("check", help="check a scene (points, steps, memory) and estimate its run time "
                                               "from a few timed steps")

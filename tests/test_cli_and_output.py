@@ -217,7 +217,7 @@ def test_compare_results_compares_interval_means_up_to_the_time_both_runs_reache
     assert [line.split()[0] for line in described[2:5]] == ["appears", "top", "top"]
 
 
-def test_refined_scene_halves_the_step_or_the_cell_and_doubles_the_relaxation():
+def test_refined_scene_halves_the_step_or_the_cell_and_doubles_the_relaxation_or_the_stress_substeps():
     scene = jaxmpm.Scene.from_toml(BLOCK)                    # cfl 0.4 (the default), cell 0.05
     assert jaxmpm.refined_scene(scene, "dt").cfl == pytest.approx(scene.cfl / 2)
     given = scene.with_value("scene.dt", 1e-4)
@@ -227,6 +227,15 @@ def test_refined_scene_halves_the_step_or_the_cell_and_doubles_the_relaxation():
     assert jaxmpm.Simulation(finer).point_count == 4 * jaxmpm.Simulation(given).point_count
     relaxed = scene.with_value("numerics.transfer", "apic").with_value("numerics.relaxation", 10.0)
     assert jaxmpm.refined_scene(relaxed, "relaxation").numerics.relaxation == 20.0
+    # "stress": the stress update's substeps doubled, on a scene whose body can yield; refused
+    # with one sentence on the elastic block, whose update has nothing to refine
+    from jaxmpm.running.refinement import describe_refinement, refinement_refused
+
+    sand = jaxmpm.Scene.from_toml(BLOCK.replace('model = "linear_elastic"', 'model = "drucker_prager"\nfriction_angle = 30.0'))
+    assert jaxmpm.refined_scene(sand.with_value("numerics.stress_substeps", 2), "stress").numerics.stress_substeps == 4
+    assert describe_refinement(sand, "stress") == "numerics.stress_substeps 1 -> 2"
+    assert refinement_refused(sand, "stress") is None
+    assert "no free body that can yield" in refinement_refused(scene, "stress")
 
 
 def test_run_refine_keeps_an_unfinished_refined_file_and_resumes_only_its_own_scene(block_file, tmp_path, capsys):

@@ -1,7 +1,7 @@
 """A run against the same scene at refined numerics: how much its probes owe to the discretisation.
 
-An explicit MPM result depends on the time step, the cell and the transfer's relaxation
-(docs/convergence.md). `refined_scene` makes the scene one step finer in one of them;
+An explicit MPM result depends on the time step, the cell, the transfer's relaxation and,
+with a viscoplastic sand, the step of its stress update (docs/convergence.md). `refined_scene` makes the scene one step finer in one of them;
 `compare_results` reads how far each probe moves over the run. Probes are recorded every step,
 and forces ripple from one step to the next (a contact tip crossing a row of nodes), so each
 run's probe is averaged over each output interval (the trapezoidal rule on its own steps) and
@@ -15,6 +15,9 @@ quantity passing through zero does not read as a large relative change. Halving 
 scene's own should change every probe by well under the accuracy a user needs; if it does not,
 the run is not converged in dt and its numbers carry that error.
 
+"stress" doubles numerics.stress_substeps: the stress update's own step halved, the rest of
+the step unchanged (the Perzyna update's share of the Delta-t error).
+
 "relaxation" is a sensitivity, not a refinement: the relaxation kappa doubled. kappa moves the
 results without a limit as it grows (docs/convergence.md, "The relaxation's own effect").
 """
@@ -25,13 +28,14 @@ import dataclasses
 
 import numpy as np
 
-REFINEMENTS = ("dt", "cell", "relaxation")
+REFINEMENTS = ("dt", "cell", "relaxation", "stress")
 
 
 def refined_scene(scene, refinement: str):
     """The scene with its time step halved ("dt": scene.dt, or scene.cfl when dt is not
     given), its cell halved ("cell": the time step follows from the cfl, and a given
-    scene.dt is halved with it) or its relaxation doubled ("relaxation")."""
+    scene.dt is halved with it), its relaxation doubled ("relaxation") or its stress substeps
+    doubled ("stress")."""
     if refinement == "dt":
         if scene.dt is not None:
             return scene.with_value("scene.dt", scene.dt / 2.0)
@@ -41,6 +45,8 @@ def refined_scene(scene, refinement: str):
         return scene if scene.dt is None else scene.with_value("scene.dt", scene.dt / 2.0)
     if refinement == "relaxation":
         return scene.with_value("numerics.relaxation", 2.0 * scene.numerics.relaxation)
+    if refinement == "stress":
+        return scene.with_value("numerics.stress_substeps", 2 * scene.numerics.stress_substeps)
     raise ValueError(f"refinement {refinement!r} is not one of {REFINEMENTS}")
 
 
@@ -50,6 +56,10 @@ def refinement_refused(scene, refinement: str) -> str | None:
         return (f"the scene {scene.name!r} has no relaxation to double (numerics.transfer = "
                 f"{scene.numerics.transfer!r}, numerics.relaxation = {scene.numerics.relaxation:g}; it needs "
                 "'apic' and a relaxation > 0)")
+    if refinement == "stress" and not any(body.kinematics.type == "free" and scene.material_of(body).law.yields
+                                          for body in scene.bodies):
+        return (f"the scene {scene.name!r} has no free body that can yield, whose stress update "
+                "numerics.stress_substeps would refine")
     return None
 
 
@@ -63,6 +73,8 @@ def describe_refinement(scene, refinement: str) -> str:
         key, before, after = "grid.cell", scene.grid.cell, refined.grid.cell
         if scene.dt is not None:
             return f"{key} {before:g} -> {after:g}, scene.dt {scene.dt:g} -> {refined.dt:g}"
+    elif refinement == "stress":
+        key, before, after = "numerics.stress_substeps", scene.numerics.stress_substeps, refined.numerics.stress_substeps
     else:
         key, before, after = "numerics.relaxation", scene.numerics.relaxation, refined.numerics.relaxation
     return f"{key} {before:g} -> {after:g}"
