@@ -71,7 +71,8 @@ def calibrate(
     jaxmpm Result, or the path of a CSV or HDF5 file. optimizer: "lm" (default), "lbfgs" or
     "adam" (see the module docstring). callback(iteration, progress) is called after every
     iteration (e.g. to log or to stop). numerical_check: refinements among "dt" (time step
-    halved), "cell" (cell halved) and "relaxation" (numerics.relaxation doubled): for each,
+    halved), "cell" (cell halved), "relaxation" (numerics.relaxation doubled) and "stress"
+    (numerics.stress_substeps doubled: the Perzyna update's own step): for each,
     the fit reports how far its values would move at those numerics (`Fit.numerical_shifts`,
     inverse/numerical_error.py), one forward run of every experiment each.
     """
