@@ -293,7 +293,8 @@ def describe(sim) -> str:
     subcycled = "".join(f", {block.name} in {block.substeps} substeps of each"
                         for block in sim.structure.bodies if block.substeps > 1)
     return (f"{scene.name}: {sim.point_count} points, {sim.steps} steps of {sim.dt:.4g} s{subcycled}, "
-            f"{scene.numerics.dtype}{describe_relaxation(scene)}{describe_corners(sim.structure)}")
+            f"{scene.numerics.dtype}{describe_relaxation(scene)}{describe_corners(sim.structure)}"
+            f"{describe_stress_substeps(scene)}")
 
 
 def describe_relaxation(scene) -> str:
@@ -324,6 +325,12 @@ def describe_corners(structure) -> str:
     radii = ", ".join(f"{block.name} {1e3 * float(corner_radius(np.asarray(block.outline), structure.layout.cell, cells)):.3g} mm"
                       for block in outlined)
     return f", corner radius {cells:g} cell{'' if cells == 1.0 else 's'} ({radii})"
+
+
+def describe_stress_substeps(scene) -> str:
+    """', stress update in 4 substeps' when numerics.stress_substeps > 1, '' otherwise."""
+    substeps = scene.numerics.stress_substeps
+    return f", stress update in {substeps} substeps" if substeps > 1 else ""
 
 
 def print_notes(scene):

@@ -517,7 +517,7 @@ def test_numerics_corner_radius_sets_the_rounding_and_zero_keeps_the_corners_sha
     assert "numerics.corner_radius = -1.0" in str(error.value) and str(error.value).count(". ") == 0
 
 
-def test_the_check_command_states_the_corner_radius_of_prescribed_bodies(tmp_path, capsys):
+def test_the_check_command_states_the_corner_radius_of_prescribed_bodies_and_the_stress_substeps(tmp_path, capsys):
     # The rounding moves a pile's resistance by several per cent, so `jaxmpm check` (and run)
     # state it beside the relaxation: in cells and, per body, in mm after the cap of a quarter
     # of the body's width (the punch is 0.06 m wide: at most 15 mm; the cell is 0.02 m).
@@ -532,6 +532,9 @@ def test_the_check_command_states_the_corner_radius_of_prescribed_bodies(tmp_pat
     assert "corner radius 1 cell (punch 15 mm)" in said["1"]
     assert "corner radius 0.5 cells (punch 10 mm)" in said["0.5"]
     assert "corners sharp (corner radius 0)" in said["0"]
+    assert "substeps" not in said["1"]
+    assert main(["check", str(path), "--quick", "--set", "numerics.stress_substeps=4"]) == 0
+    assert "stress update in 4 substeps" in capsys.readouterr().out
     path.write_text(small_wall().to_toml())          # a rigid wall meets the sand with its mean normal
     assert main(["check", str(path), "--quick"]) == 0
     assert "corner" not in capsys.readouterr().out
