@@ -535,6 +535,8 @@ def test_the_check_command_states_the_corner_radius_of_prescribed_bodies_and_the
     assert "substeps" not in said["1"]
     assert main(["check", str(path), "--quick", "--set", "numerics.stress_substeps=4"]) == 0
     assert "stress update in 4 substeps" in capsys.readouterr().out
+    assert "stress_substeps" not in punch().to_dict()["numerics"]        # the default is not written
+    assert Scene.from_toml(punch().with_value("numerics.stress_substeps", 4).to_toml()).numerics.stress_substeps == 4
     path.write_text(small_wall().to_toml())          # a rigid wall meets the sand with its mean normal
     assert main(["check", str(path), "--quick"]) == 0
     assert "corner" not in capsys.readouterr().out
