@@ -236,6 +236,7 @@ def test_refined_scene_halves_the_step_or_the_cell_and_doubles_the_relaxation_or
     assert describe_refinement(sand, "stress") == "numerics.stress_substeps 1 -> 2"
     assert refinement_refused(sand, "stress") is None
     assert "no free body that can yield" in refinement_refused(scene, "stress")
+    assert "64 is the largest" in refinement_refused(sand.with_value("numerics.stress_substeps", 64), "stress")
 
 
 def test_run_refine_keeps_an_unfinished_refined_file_and_resumes_only_its_own_scene(block_file, tmp_path, capsys):

@@ -979,7 +979,7 @@ def test_stress_substeps_make_the_perzyna_update_converge_at_first_order_within_
     def final_shear(gradients, step, substeps):
         update = points_update(law, step, substeps)
         start = (-5e3 * jnp.eye(3)[None], law.init_state(1, jnp.float64))
-        (stress, _), _ = jax.lax.scan(lambda carry, g: (update(params, *carry[:1], g, carry[1]), None), start, gradients)
+        (stress, _), _ = jax.lax.scan(lambda carry, g: (update(params, carry[0], g, carry[1]), None), start, gradients)
         return stress[0, 0, 1]
 
     def repeated(times):

@@ -104,7 +104,8 @@ def points_update(law, dt, substeps=1):
             return law.update(params, stress, velocity_gradient, dt, state)
 
         def substep(_, carry):
-            return law.update(params, *carry[:1], velocity_gradient, dt / substeps, carry[1])
+            stress, state = carry
+            return law.update(params, stress, velocity_gradient, dt / substeps, state)
 
         return jax.lax.fori_loop(0, substeps, substep, (stress, state))
 

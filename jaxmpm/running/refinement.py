@@ -1,7 +1,8 @@
 """A run against the same scene at refined numerics: how much its probes owe to the discretisation.
 
 An explicit MPM result depends on the time step, the cell, the transfer's relaxation and,
-with a viscoplastic sand, the step of its stress update (docs/convergence.md). `refined_scene` makes the scene one step finer in one of them;
+with a viscoplastic sand, the step of its stress update (docs/convergence.md).
+`refined_scene` makes the scene one step finer in one of them;
 `compare_results` reads how far each probe moves over the run. Probes are recorded every step,
 and forces ripple from one step to the next (a contact tip crossing a row of nodes), so each
 run's probe is averaged over each output interval (the trapezoidal rule on its own steps) and
@@ -52,6 +53,8 @@ def refined_scene(scene, refinement: str):
 
 def refinement_refused(scene, refinement: str) -> str | None:
     """Why `refinement` cannot be made on `scene` (a sentence's end), or None."""
+    from jaxmpm.scene.parts import MAX_STRESS_SUBSTEPS       # here: the CLI's parser imports this module
+
     if refinement == "relaxation" and (scene.numerics.transfer != "apic" or scene.numerics.relaxation <= 0.0):
         return (f"the scene {scene.name!r} has no relaxation to double (numerics.transfer = "
                 f"{scene.numerics.transfer!r}, numerics.relaxation = {scene.numerics.relaxation:g}; it needs "
@@ -60,6 +63,9 @@ def refinement_refused(scene, refinement: str) -> str | None:
                                           for body in scene.bodies):
         return (f"the scene {scene.name!r} has no free body that can yield, whose stress update "
                 "numerics.stress_substeps would refine")
+    if refinement == "stress" and 2 * scene.numerics.stress_substeps > MAX_STRESS_SUBSTEPS:
+        return (f"numerics.stress_substeps = {scene.numerics.stress_substeps} cannot be doubled: "
+                f"{MAX_STRESS_SUBSTEPS} is the largest")
     return None
 
 

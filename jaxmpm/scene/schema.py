@@ -10,7 +10,7 @@ the grid, a probe naming a body) are in `jaxmpm.scene.checks`.
 from jaxmpm.keys import REQUIRED, Key, Section
 from jaxmpm.materials import MODELS
 from jaxmpm.scene.parts import (
-    BOUNDARY_KINDS, DEFAULT_CORNER_RADIUS, DEFAULT_PRESET, DEFAULT_RELAXATION, DEFAULT_STRESS_SUBSTEPS, GEOMETRIES, KINEMATICS, NUMERICS_CHOICES, PRESETS, PROBE_KINDS, SNAPSHOT_FIELDS,
+    BOUNDARY_KINDS, DEFAULT_CORNER_RADIUS, DEFAULT_PRESET, DEFAULT_RELAXATION, DEFAULT_STRESS_SUBSTEPS, GEOMETRIES, MAX_STRESS_SUBSTEPS, KINEMATICS, NUMERICS_CHOICES, PRESETS, PROBE_KINDS, SNAPSHOT_FIELDS,
 )
 
 
@@ -81,7 +81,7 @@ NUMERICS = Section((
         "many updates of dt / stress_substeps with the step's velocity gradient: the Perzyna update (backward "
         "Euler) is first order in its own step, and a viscoplastic sand's result then moves with dt; each "
         "substep costs another stress update (docs/convergence.md)", default=DEFAULT_STRESS_SUBSTEPS, low=1,
-        high=64, low_inclusive=True, high_inclusive=True),
+        high=MAX_STRESS_SUBSTEPS, low_inclusive=True, high_inclusive=True),
     Key("damping", "float", "local (Cundall) damping coefficient: each node's force is reduced by damping "
         "|f| sign(v); for quasi-static settling, never set by a preset", default=0.0, low=0.0, high=1.0,
         low_inclusive=True, high_inclusive=True),
