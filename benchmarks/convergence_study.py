@@ -1,7 +1,7 @@
 """Time-step and cell convergence of the headline quantities: the tables of docs/convergence.md.
 
     python benchmarks/convergence_study.py                 # every study (about 25 min on 2 cores)
-    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | subcycled | examples | cells | example_cells | relaxation | shapes | pile_jitter
+    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | subcycled | examples | cells | example_cells | relaxation | shapes | pile_jitter | stress
 
 Each run is a forward run of a scene at some numerics; the quantities are read at every
 output time and the largest relative change between two runs is reported.
@@ -35,6 +35,9 @@ output time and the largest relative change between two runs is reported.
   dt study, and how far each lies from kappa = 1000 (almost pure FLIP). kappa is a numerical
   parameter; this shows how much the answer depends on it and whether that shrinks with the
   cell (about an hour on 2 cores, most of it the wall at h/2).
+- stress: the retaining wall (to 0.35 s) with its stress update in K = 1, 2, 4, 16 substeps
+  (numerics.stress_substeps), and with the Perzyna exponent 1 and 3, at cfl 0.4 and 0.2: the
+  update's own share of the Delta-t error (about 75 minutes on 2 cores, most of it K = 16).
 - shapes: the retaining wall (to 0.35 s) and the pile (whole run) with each shape function
   (linear, gimp, bspline2) at cfl 0.4 and 0.2, and with bspline2 at h/2: which shape carries
   the examples' remaining Delta-t error, and what a smoother shape costs in the cell (about
@@ -601,9 +604,36 @@ def shapes_study(finer_cell=True):
                   f"({100 * own_change(coarse, fine):.2f} %) | {mean:+.2f} % | {seconds:.0f} |", flush=True)
 
 
+def stress_study(cases=((1, {}), (2, {}), (4, {}), (16, {}), (1, {"materials.sand.exponent": 1.0}),
+                        (1, {"materials.sand.exponent": 3.0}), (4, {"materials.sand.exponent": 3.0}),
+                        (16, {"numerics.relaxation": 10.0}))):
+    """The retaining wall to 0.35 s with K stress substeps and one changed value, at cfl 0.4 and
+    0.2: its rotation every 0.05 s, and the change per halving against each output's value."""
+    import jaxmpm
+
+    print("\n### The retaining wall's stress update in K substeps (rotation every 0.05 s to 0.35 s)\n")
+    print("| K | changed | rotation at 0.35 s, cfl 0.4 / 0.2 [°] | change per halving at each output | runs [s] |")
+    print("|---|---|---|---|---|")
+    base = jaxmpm.load_scene(ROOT / "examples" / "retaining_wall.toml").with_value("scene.duration", 0.35)
+    times = np.arange(0.05, 0.35 + 1e-4, 0.05)
+    for substeps, changed in cases:
+        scene = base.with_value("numerics.stress_substeps", substeps)
+        for key, value in changed.items():
+            scene = scene.with_value(key, value)
+        found, seconds = [], 0.0
+        for cfl in (0.4, 0.2):
+            t, probes, _, spent = run(scene.with_value("scene.cfl", cfl))
+            found.append(np.degrees(at_times(t, probes["rotation"][:, 0], times)))
+            seconds += spent
+        coarse, fine = found
+        change = " / ".join(f"{100 * (c - f) / abs(f):+.2f}" for c, f in zip(coarse, fine))
+        label = ", ".join(f"{key} = {value:g}" for key, value in changed.items()) or "–"
+        print(f"| {substeps} | {label} | {coarse[-1]:.4f} / {fine[-1]:.4f} | {change} % | {seconds:.0f} |", flush=True)
+
+
 STUDIES = {"wall": wall_study, "stiff": stiff_study, "subcycled": subcycled_study, "examples": examples_study, "cells": cells_study,
            "example_cells": example_cells_study, "relaxation": relaxation_study, "shapes": shapes_study,
-           "pile_jitter": pile_jitter_study}
+           "pile_jitter": pile_jitter_study, "stress": stress_study}
 
 
 def main():
