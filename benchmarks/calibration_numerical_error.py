@@ -1,6 +1,7 @@
 """The numerical error of a calibration, measured on the wall twin: docs/calibration.md's table.
 
-    python benchmarks/calibration_numerical_error.py [--relaxation 0 10] [--refinement dt|relaxation]
+    python benchmarks/calibration_numerical_error.py [--relaxation 0 10] [--refinement dt|relaxation|stress]
+                                                     [--stress-substeps K]
 
 The twin's observations (wall-top displacement, thrust; examples/calibrate_wall_scene.toml)
 are made at fine numerics, the time step halved (cfl 0.2), noise-free, at the true values
@@ -10,8 +11,10 @@ truth) is then the numerical error a user inherits, and the check's predicted sh
 values would do at the refined numerics) should be minus that bias. A second fit to the same
 observations with 2 % noise gives the noise standard errors to compare with. With
 `--refinement relaxation` the observations are made at the relaxation doubled instead (the
-time step as the fit's), and the check is `numerical_check=("relaxation",)`. A study, not a
-test: about 10 minutes per relaxation on 2 cores.
+time step as the fit's), and the check is `numerical_check=("relaxation",)`; with
+`--refinement stress` at the stress substeps doubled (`numerical_check=("stress",)`).
+`--stress-substeps K` sets the fit's own substeps (default 1). A study, not a test: about
+10 minutes per relaxation on 2 cores at one substep.
 """
 
 from __future__ import annotations
@@ -35,13 +38,15 @@ from calibration_study import WALL_FIT, WALL_SCENE, WALL_START, WALL_TRUTH, wall
 from jaxmpm.running.refinement import refined_scene  # noqa: E402
 
 
-def study(relaxation, refinement="dt"):
-    scene = jaxmpm.load_scene(WALL_SCENE).with_value("numerics.relaxation", relaxation)
+def study(relaxation, refinement="dt", stress_substeps=1):
+    scene = (jaxmpm.load_scene(WALL_SCENE).with_value("numerics.relaxation", relaxation)
+             .with_value("numerics.stress_substeps", stress_substeps))
     coarse = jaxmpm.Simulation(scene)
     fine = jaxmpm.Simulation(refined_scene(scene, refinement))
-    made = f"{fine.steps} steps at cfl {scene.cfl / 2:g}" if refinement == "dt" else f"relaxation {2 * relaxation:g}"
-    print(f"\n### relaxation = {relaxation:g}: {coarse.point_count} points, {coarse.steps} steps at cfl "
-          f"{scene.cfl:g} (observations made at {made})\n")
+    made = {"dt": f"{fine.steps} steps at cfl {scene.cfl / 2:g}", "relaxation": f"relaxation {2 * relaxation:g}",
+            "stress": f"{2 * stress_substeps} stress substeps"}[refinement]
+    print(f"\n### relaxation = {relaxation:g}, {stress_substeps} stress substep(s): {coarse.point_count} points, "
+          f"{coarse.steps} steps at cfl {scene.cfl:g} (observations made at {made})\n")
     print(f"| parameter | truth | fit at cfl {scene.cfl:g}, relaxation {relaxation:g} | bias | predicted shift "
           f"({refinement} refined) | bias / noise standard error (2 %) |")
     print("|---|---|---|---|---|---|")
@@ -60,12 +65,13 @@ def study(relaxation, refinement="dt"):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--relaxation", type=float, nargs="+", default=[0.0, 10.0])
-    parser.add_argument("--refinement", choices=("dt", "relaxation"), default="dt",
+    parser.add_argument("--refinement", choices=("dt", "relaxation", "stress"), default="dt",
                         help="what the observations are made finer in (default: dt)")
+    parser.add_argument("--stress-substeps", type=int, default=1, help="the fit's numerics.stress_substeps")
     arguments = parser.parse_args()
     print(f"jaxmpm calibration numerical error, {time.strftime('%Y-%m-%d')}, {jax.devices()[0].device_kind}")
     for relaxation in arguments.relaxation:
-        study(relaxation, arguments.refinement)
+        study(relaxation, arguments.refinement, arguments.stress_substeps)
         sys.stdout.flush()
 
 
