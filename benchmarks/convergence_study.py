@@ -1,7 +1,7 @@
 """Time-step and cell convergence of the headline quantities: the tables of docs/convergence.md.
 
     python benchmarks/convergence_study.py                 # every study (about 25 min on 2 cores)
-    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | subcycled | examples | cells | example_cells | relaxation | shapes | pile_jitter | stress
+    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | subcycled | examples | cells | example_cells | relaxation | shapes | pile_jitter | stress | perzyna_law
 
 Each run is a forward run of a scene at some numerics; the quantities are read at every
 output time and the largest relative change between two runs is reported.
@@ -38,6 +38,10 @@ output time and the largest relative change between two runs is reported.
 - stress: the retaining wall (to 0.35 s) with its stress update in K = 1, 2, 4, 16 substeps
   (numerics.stress_substeps), and with the Perzyna exponent 1 and 3, at cfl 0.4 and 0.2: the
   update's own share of the Delta-t error (about 75 minutes on 2 cores, most of it K = 16).
+- perzyna_law: the small wall over 0.12 s with its backfill made Perzyna-viscoplastic
+  (exponent N, fluidity gamma) and its stress update in 16 substeps, so that the update's own
+  error is gone, at cfl 0.4, 0.2 and 0.1: the first-order error the rest of the step leaves,
+  against the rate-independent backfill's (about 15 minutes).
 - shapes: the retaining wall (to 0.35 s) and the pile (whole run) with each shape function
   (linear, gimp, bspline2) at cfl 0.4 and 0.2, and with bspline2 at h/2: which shape carries
   the examples' remaining Delta-t error, and what a smoother shape costs in the cell (about
@@ -631,9 +635,31 @@ def stress_study(cases=((1, {}), (2, {}), (4, {}), (16, {}), (1, {"materials.san
         print(f"| {substeps} | {label} | {coarse[-1]:.4f} / {fine[-1]:.4f} | {change} % | {seconds:.0f} |", flush=True)
 
 
+def perzyna_law_study(cases=((None, None), (1.0, 50.0), (1.0, 5.0), (1.0, 0.5), (3.0, 50.0), (3.0, 5.0), (2.0, 0.5),
+                             (3.0, 0.5)), substeps=16, duration=0.12):
+    """The small wall's top at `duration` with a Perzyna backfill of exponent N and fluidity
+    gamma (None: rate-independent) and `substeps` stress substeps, at cfl 0.4, 0.2 and 0.1."""
+    print(f"\n### Small rigid wall, Perzyna backfill, {substeps} stress substeps: top at {duration:g} s [mm]\n")
+    print("| N | fluidity [1/s] | cfl 0.4 / 0.2 / 0.1 | change per halving 0.4 → 0.2 / 0.2 → 0.1 | runs [s] |")
+    print("|---|---|---|---|---|")
+    for exponent, fluidity in cases:
+        values = {"scene.duration": duration, "numerics.stress_substeps": substeps}
+        if fluidity is not None:
+            values.update({"materials.sand.fluidity": fluidity, "materials.sand.exponent": exponent})
+        tops, seconds = [], 0.0
+        for cfl in (0.4, 0.2, 0.1):
+            t, probes, _, spent = run(small_wall(**values, **{"scene.cfl": cfl}))
+            tops.append(-1e3 * at_times(t, probes["wall_top"][:, 0], (duration,))[0])
+            seconds += spent
+        changes = " / ".join(f"{100 * (fine - coarse) / abs(fine):+.2f} %" for coarse, fine in zip(tops, tops[1:]))
+        law = ("–", "rate-independent") if fluidity is None else (f"{exponent:g}", f"{fluidity:g}")
+        print(f"| {law[0]} | {law[1]} | {' / '.join(f'{top:.3f}' for top in tops)} | {changes} | {seconds:.0f} |", flush=True)
+
+
 STUDIES = {"wall": wall_study, "stiff": stiff_study, "subcycled": subcycled_study, "examples": examples_study, "cells": cells_study,
            "example_cells": example_cells_study, "relaxation": relaxation_study, "shapes": shapes_study,
-           "pile_jitter": pile_jitter_study, "stress": stress_study}
+           "pile_jitter": pile_jitter_study, "stress": stress_study,
+           "perzyna_law": perzyna_law_study}
 
 
 def main():
