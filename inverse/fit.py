@@ -20,6 +20,7 @@ import numpy as np
 
 from inverse.experiments import experiment_bases
 from jaxmpm.errors import SimulationError
+from jaxmpm.running.refinement import REFINEMENT_LABELS
 from jaxmpm.running.runner import describe_failure
 from jaxmpm.running.tracing import collector_paused
 
@@ -113,7 +114,7 @@ class Fit:
     experiments: list               # [ExperimentFit]
     scene_toml: str
     warning: str = ""
-    numerical_shifts: dict = dataclasses.field(default_factory=dict)   # {"dt" | "cell": (P,)}
+    numerical_shifts: dict = dataclasses.field(default_factory=dict)   # {refinement: (P,)}
     compile_seconds: float = float("nan")
     iteration_compile_seconds: float = 0.0
     earlier_seconds: float = 0.0
@@ -215,7 +216,6 @@ class Fit:
     def numerical_error_lines(self) -> list[str]:
         """One line per refinement checked (`calibrate(numerical_check=...)`): how far each
         value would move at the refined numerics, in standard errors, and which dominates."""
-        labels = {"dt": "time step halved", "cell": "cell halved", "relaxation": "relaxation doubled"}
         lines = []
         for refinement, shift in self.numerical_shifts.items():
             errors = [self.stderr[n] for n in self.names]
@@ -226,7 +226,7 @@ class Fit:
             verdict = ("no parameter has a finite standard error to compare with" if not finite
                        else "the numerics dominate the noise" if max(finite) >= 1.0
                        else "the noise dominates")
-            lines.append(f"  numerical error ({labels[refinement]}): {moves}; {verdict}")
+            lines.append(f"  numerical error ({REFINEMENT_LABELS[refinement]}): {moves}; {verdict}")
         return lines
 
     def plot(self, path=None):

@@ -411,6 +411,25 @@ def test_bounds_that_would_make_the_time_step_unstable_are_refused():
         inverse.calibrate(sim, twin_observations(), {"sand.young": (1.0e5, None)}, progress=False)
 
 
+def test_a_fits_summary_names_every_refinement_it_checked():
+    # A calibration with numerical_check = ("stress",) crashed in fit.summary() with a KeyError
+    # until 2026-12-06: the summary knew the words for dt, cell and relaxation only. Every
+    # refinement calibrate accepts must read as a line, with each shift in standard errors.
+    from types import SimpleNamespace
+
+    from inverse.fit import Fit
+    from jaxmpm.running.refinement import REFINEMENT_LABELS, REFINEMENTS
+
+    fit = SimpleNamespace(names=("sand.friction_angle", "sand.fluidity"), stderr={"sand.friction_angle": 0.5,
+                                                                                  "sand.fluidity": 0.1},
+                          numerical_shifts={refinement: np.array([1.0, 0.01]) for refinement in REFINEMENTS})
+    lines = Fit.numerical_error_lines(fit)
+    assert len(lines) == len(REFINEMENTS)
+    for line, refinement in zip(lines, REFINEMENTS):
+        assert f"numerical error ({REFINEMENT_LABELS[refinement]}): sand.friction_angle +1 (2 se)" in line
+        assert line.endswith("the numerics dominate the noise")
+
+
 def test_the_numerical_check_predicts_the_bias_of_a_coarse_fit():
     # A twin made at half the time step, noise-free, fitted at the default step: the fitted
     # modulus is biased by the discretisation alone, and the check's predicted shift (the

@@ -29,7 +29,10 @@ import dataclasses
 
 import numpy as np
 
-REFINEMENTS = ("dt", "cell", "relaxation", "stress")
+# What each refinement does, in a few words (for summaries such as a calibration's).
+REFINEMENT_LABELS = {"dt": "time step halved", "cell": "cell halved", "relaxation": "relaxation doubled",
+                     "stress": "stress substeps doubled"}
+REFINEMENTS = tuple(REFINEMENT_LABELS)
 
 
 def refined_scene(scene, refinement: str):
