@@ -281,6 +281,29 @@ def test_plain_apic_on_soil_that_can_flow_is_said_to_drift_with_the_step(tmp_pat
     assert "note: numerics.relaxation = 0 (plain APIC)" in capsys.readouterr().err
 
 
+def test_a_nonlinear_perzyna_sand_updated_once_a_step_is_told_to_check_its_stress_update(tmp_path, capsys):
+    # The Perzyna update (backward Euler) has a first-order error of its own that grows with the
+    # exponent N, and halving dt hid it on the retaining wall (docs/convergence.md, "The Perzyna
+    # update's own step"). A scene whose free body yields by such a law with one stress update
+    # a step is told so; N = 1, more substeps or a rate-independent sand have nothing to say.
+    from jaxmpm.cli import main
+
+    examples = Path(__file__).resolve().parents[1] / "examples"
+    wall = jaxmpm.load_scene(examples / "retaining_wall.toml")
+    assert wall.numerics.stress_substeps == 4 and wall.notes == ()
+    once = wall.with_value("numerics.stress_substeps", 1)
+    (note,) = once.notes
+    assert "materials.sand is viscoplastic with exponent 2" in note and "--refine stress" in note
+    assert once.with_value("materials.sand.exponent", 1.0).notes == ()
+    rate_independent = dataclasses.replace(once.materials["sand"], fluidity=None, exponent=1.0)
+    assert dataclasses.replace(once, materials={**once.materials, "sand": rate_independent}).notes == ()
+    assert jaxmpm.load_scene(examples / "pile_driving.toml").notes == ()          # N = 1
+    path = tmp_path / "once.toml"
+    path.write_text(once.to_toml())
+    assert main(["check", str(path), "--quick"]) == 0
+    assert "note: materials.sand is viscoplastic with exponent 2" in capsys.readouterr().err
+
+
 def test_a_time_step_given_with_a_courant_number_is_said_to_win(tmp_path, capsys):
     # `dt` and `cfl` together were accepted silently; dt decides, and the note says so with the
     # Courant number it amounts to.

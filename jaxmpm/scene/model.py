@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+from jaxmpm.keys import is_concrete
 from jaxmpm.scene.checks import check_scene
 from jaxmpm.scene.files import dict_with_value, read_scene_file, scene_arguments, scene_to_dict, toml_text, toml_values
 from jaxmpm.scene.parts import DEFAULT_CFL, Body, Contact, Grid, Numerics, Probe
@@ -108,6 +109,11 @@ class Scene:
                          "that flows moves less as the step shrinks (a released retaining wall turned 8 % less at "
                          "half the step): give numerics.relaxation (the examples use 10 to 25) and check a result "
                          "with --refine dt")
+        for name, exponent in self.nonlinear_perzyna_updated_once:
+            notes.append(f"materials.{name} is viscoplastic with exponent {exponent:g} and numerics.stress_substeps = 1: "
+                         "its stress update's own first-order error held the retaining wall example back by 2-5 % "
+                         "and hid behind the rest of the step's when dt was halved (docs/convergence.md); the "
+                         "example uses stress_substeps = 4: check a result with --refine stress")
         if self.dt is not None and self.cfl != DEFAULT_CFL:
             notes.append(f"scene.dt = {self.dt:g} s is given, so scene.cfl = {self.cfl:g} is not used: that dt is "
                          f"{self.dt / self.stable_dt:.3g} of the stable limit {self.stable_dt:.4g} s")
@@ -120,6 +126,18 @@ class Scene:
         flowing = any(body.kinematics.type == "free" and not body.kinematics.subcycled
                       and self.material_of(body).law.yields for body in self.bodies)
         return self.transfer == "apic" and self.numerics.relaxation == 0.0 and flowing
+
+    @property
+    def nonlinear_perzyna_updated_once(self) -> tuple[tuple[str, float], ...]:
+        """(material name, exponent) of each Perzyna material with N != 1 that a free body uses,
+        when each step's stress update is one backward-Euler step (numerics.stress_substeps =
+        1): its own first-order error grows with N (docs/convergence.md)."""
+        if self.numerics.stress_substeps != 1:
+            return ()
+        used = {body.material for body in self.bodies if body.kinematics.type == "free"}
+        return tuple((name, float(material.exponent)) for name, material in self.materials.items()
+                     if name in used and getattr(material, "viscoplastic", False)
+                     and is_concrete(material.exponent) and float(material.exponent) != 1.0)
 
     def component_names(self, count: int) -> list[str]:
         """Names of a probe's `count` components: its axes ("x", "y"; "r", "z" in axisymmetry)
