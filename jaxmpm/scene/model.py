@@ -110,10 +110,9 @@ class Scene:
                          "half the step): give numerics.relaxation (the examples use 10 to 25) and check a result "
                          "with --refine dt")
         for name, exponent in self.nonlinear_perzyna_updated_once:
-            notes.append(f"materials.{name} is viscoplastic with exponent {exponent:g} and numerics.stress_substeps = 1: "
-                         "its stress update's own first-order error held the retaining wall example back by 2-5 % "
-                         "and hid behind the rest of the step's when dt was halved (docs/convergence.md); the "
-                         "example uses stress_substeps = 4: check a result with --refine stress")
+            notes.append(f"materials.{name} is viscoplastic with exponent {exponent:g}, and one stress update a step "
+                         "(numerics.stress_substeps = 1) has a first-order error of its own that halving dt can hide "
+                         "(2-5 % on the retaining wall example, which uses 4): check a result with --refine stress")
         if self.dt is not None and self.cfl != DEFAULT_CFL:
             notes.append(f"scene.dt = {self.dt:g} s is given, so scene.cfl = {self.cfl:g} is not used: that dt is "
                          f"{self.dt / self.stable_dt:.3g} of the stable limit {self.stable_dt:.4g} s")
