@@ -1,7 +1,7 @@
 """Time-step and cell convergence of the headline quantities: the tables of docs/convergence.md.
 
     python benchmarks/convergence_study.py                 # every study (about 25 min on 2 cores)
-    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | subcycled | examples | cells | example_cells | relaxation | shapes | pile_jitter | stress | perzyna_law
+    python benchmarks/convergence_study.py --study wall    # one: wall | stiff | subcycled | examples | cells | example_cells | relaxation | shapes | pile_jitter | stress | perzyna_law | perzyna_noise
 
 Each run is a forward run of a scene at some numerics; the quantities are read at every
 output time and the largest relative change between two runs is reported.
@@ -43,13 +43,26 @@ output time and the largest relative change between two runs is reported.
   own error is gone, at cfl 0.4, 0.2 and 0.1: the first-order error the rest of the step leaves,
   in mm and against the top's own value, beside the rate-independent backfill's (about 25
   minutes).
+- perzyna_noise: why a Perzyna law of exponent N > 1 adds to that error. The same small wall
+  (fluidity 0.5 1/s; N = 3 in 16 substeps, N = 1 in 4) at numerics.relaxation 10, 25, 100 and
+  cfl 0.4 and 0.2, with every step kept: the top, its change per halving, and the rectification
+  J = mean(rate^(1/N)) / mean(rate)^(1/N) of each sand point's plastic rate over 2 ms windows
+  (0.04-0.12 s; 1 for a steady rate, below 1 when the rate fluctuates: the overstress the
+  law carries on average falls short of what the mean rate needs, since (q - m p) / m p =
+  (rate / gamma)^(1/N) is concave in the rate for N > 1; J is taken with the power 1/3 for
+  both laws, so that for N = 1 it measures the same fluctuation, which that law averages
+  out). Then the same laws and the
+  rate-independent one with quadratic B-splines, and each law's top after a friction angle
+  0.5 degrees higher: how sensitive the problem is, so that errors can be compared in
+  friction-angle equivalents (about 10 minutes).
 - shapes: the retaining wall (to 0.35 s) and the pile (whole run) with each shape function
   (linear, gimp, bspline2) at cfl 0.4 and 0.2, and with bspline2 at h/2: which shape carries
   the examples' remaining Delta-t error, and what a smoother shape costs in the cell (about
   30 minutes, most of it the wall at h/2).
 - pile_jitter: the pile example at cfl 0.4 and 0.2, each against a step 1 % shorter, 1 % longer
-  and half as long: whether what half the step changes in the head force is more than the
-  spread of a reading that a 1 % change of the step already moves (about 10 minutes).
+  and half as long: whether what half the step changes in the head force and in the heave is
+  more than the spread of a reading that a 1 % change of the step already moves (about 10
+  minutes).
 A study, not a test: it prints markdown tables.
 """
 
@@ -565,6 +578,29 @@ def pile_jitter_study(cfls=(0.4, 0.2), nudge=0.01):
                 print(f"| {cfl:g} | {label} | {window} | {change.min():+.2f} … {change.max():+.2f} % | "
                       f"{np.sqrt(np.mean(change ** 2)):.2f} % | {change.mean():+.2f} % |", flush=True)
 
+    print("\n### The heave: a 1 % change of the step against half the step\n")
+    print("The heave probe's rise [mm] when the tip passes 10, 15, 20 and 25 cm and at the end; each "
+          "change against the run at cfl c.\n")
+    print("| c | compared with | heave at 10 / 15 / 20 / 25 cm / end [mm] | change: range over the readings |")
+    print("|---|---|---|---|")
+    for cfl in cfls:
+        reference = pile_heave(*runs[cfl])
+        print(f"| {cfl:g} | itself | {' / '.join(f'{h:.3f}' for h in reference)} | |")
+        for other, label in ((cfl * (1 - nudge), "1 % shorter"), (cfl * (1 + nudge), "1 % longer"),
+                             (cfl / 2, "half")):
+            heave = pile_heave(*runs[other])
+            change = 100 * (heave - reference) / reference
+            print(f"| {cfl:g} | cfl {other:g} ({label}) | {' / '.join(f'{h:.3f}' for h in heave)} | "
+                  f"{change.min():+.2f} … {change.max():+.2f} % |", flush=True)
+
+
+def pile_heave(t, probes, centimetres=(0.10, 0.15, 0.20, 0.25)):
+    """The heave probe's rise [mm] at the first step the tip passes each of `centimetres` [m]
+    of penetration, and at the end."""
+    heave = 1e3 * probes["heave"][:, 1]
+    depth = -probes["penetration"][:, 1]
+    return np.asarray([heave[int(np.argmax(depth >= d))] for d in centimetres] + [heave[-1]])
+
 
 def shapes_study(finer_cell=True):
     """The retaining wall (to 0.35 s) and the pile (its whole run) at their shipped cell and
@@ -659,10 +695,80 @@ def perzyna_law_study(cases=((None, None, 1), (1.0, 50.0, 4), (1.0, 5.0, 4), (1.
               f"{seconds:.0f} |", flush=True)
 
 
+def plastic_rate_rectification(result, exponent, start=0.04, window=0.002):
+    """Mean over `window`-long windows from `start` of J = mean(r^(1/N)) / mean(r)^(1/N), each
+    sand point's plastic rate r over the window (from every step's snapshot), the points'
+    values weighted by mean(r)^(1/N) (the steady overstress); points below 1e-3 of the
+    largest mean rate left out."""
+    times = np.asarray(result.snapshots["time"])
+    strain = np.asarray(result.snapshots["sand"]["plastic_strain"])
+    rate = np.diff(strain, axis=0) / np.diff(times)[:, None]
+    middle = 0.5 * (times[1:] + times[:-1])
+    ratios = []
+    for begin in np.arange(start, times[-1] - 1e-9, window):
+        rows = rate[(middle >= begin) & (middle < begin + window)]
+        mean = rows.mean(axis=0)
+        active = mean > 1e-3 * mean.max()
+        steady = mean[active] ** (1.0 / exponent)
+        fluctuating = (np.maximum(rows[:, active], 0.0) ** (1.0 / exponent)).mean(axis=0)
+        ratios.append(fluctuating.sum() / steady.sum())
+    return float(np.mean(ratios))
+
+
+def perzyna_noise_study(duration=0.12, fluidity=0.5, relaxations=(10.0, 25.0, 100.0)):
+    """The small wall's top at `duration` and the plastic rate's rectification J for Perzyna
+    sand of exponent 3 and 1 against the relaxation and the step; then with quadratic
+    B-splines, and each law's sensitivity to the friction angle."""
+    import jaxmpm
+
+    laws = {"N = 3": {"materials.sand.exponent": 3.0, "numerics.stress_substeps": 16},
+            "N = 1": {"materials.sand.exponent": 1.0, "numerics.stress_substeps": 4}}
+
+    def top(scene):
+        t, probes, _, _ = run(scene)
+        return -1e3 * at_times(t, probes["wall_top"][:, 0], (duration,))[0]
+
+    print(f"\n### Small rigid wall, Perzyna backfill (fluidity {fluidity:g} 1/s): top at {duration:g} s and the "
+          f"plastic rate's rectification J\n")
+    print("| law | relaxation | top at cfl 0.4 / 0.2 [mm] | change per halving | J (power 1/3) at cfl 0.4 / 0.2 |")
+    print("|---|---|---|---|---|")
+    for law, values in laws.items():
+        for relaxation in relaxations:
+            tops, ratios = [], []
+            for cfl in (0.4, 0.2):
+                scene = small_wall(**{"materials.sand.fluidity": fluidity}, **values, **{
+                    "scene.duration": duration, "numerics.relaxation": relaxation, "scene.cfl": cfl})
+                scene = scene.with_value("scene.output_every", jaxmpm.Simulation(scene).dt)
+                result = jaxmpm.Simulation(scene).run(progress=False)
+                tops.append(-1e3 * at_times(np.asarray(result.time), np.asarray(result.probes["wall_top"])[:, 0],
+                                            (duration,))[0])
+                ratios.append(plastic_rate_rectification(result, 3.0))
+            print(f"| {law} | {relaxation:g} | {tops[0]:.3f} / {tops[1]:.3f} | {100 * (tops[1] - tops[0]) / tops[1]:+.2f} % | "
+                  f"{ratios[0]:.4f} / {ratios[1]:.4f} |", flush=True)
+
+    print(f"\n### The same laws (relaxation {WALL_RELAXATION:g}) with quadratic B-splines, and against the friction angle\n")
+    print("| law | linear: change per halving | bspline2: top at cfl 0.4 / 0.2 [mm] | bspline2: change per halving | "
+          "linear: top change for phi + 0.5 deg | halving in phi-equivalents [deg] |")
+    print("|---|---|---|---|---|---|")
+    laws["rate-independent"] = {}
+    for law, values in laws.items():
+        if values:
+            values = {"materials.sand.fluidity": fluidity, **values}
+        values = {**values, "scene.duration": duration}
+        linear = [top(small_wall(**values, **{"scene.cfl": cfl})) for cfl in (0.4, 0.2)]
+        smooth = [top(small_wall(**values, **{"scene.cfl": cfl, "numerics.shape": "bspline2"})) for cfl in (0.4, 0.2)]
+        stronger = top(small_wall(**values, **{"materials.sand.friction_angle": 30.5}))
+        halving = (linear[1] - linear[0]) / linear[1]
+        per_degree = (stronger - linear[0]) / linear[0] / 0.5
+        print(f"| {law} | {100 * halving:+.2f} % | {smooth[0]:.3f} / {smooth[1]:.3f} | "
+              f"{100 * (smooth[1] - smooth[0]) / smooth[1]:+.2f} % | {100 * per_degree * 0.5:+.2f} % | "
+              f"{halving / per_degree:.3f} |", flush=True)
+
+
 STUDIES = {"wall": wall_study, "stiff": stiff_study, "subcycled": subcycled_study, "examples": examples_study, "cells": cells_study,
            "example_cells": example_cells_study, "relaxation": relaxation_study, "shapes": shapes_study,
            "pile_jitter": pile_jitter_study, "stress": stress_study,
-           "perzyna_law": perzyna_law_study}
+           "perzyna_law": perzyna_law_study, "perzyna_noise": perzyna_noise_study}
 
 
 def main():
