@@ -52,7 +52,7 @@ output time and the largest relative change between two runs is reported.
   (rate / gamma)^(1/N) is concave in the rate for N > 1; J is taken with the power 1/3 for
   both laws, so that for N = 1 it measures the same fluctuation, which that law averages
   out). Then the same laws and the
-  rate-independent one with quadratic B-splines, and each law's top after a friction angle
+  rate-independent one with quadratic B-splines and with uGIMP, and each law's top after a friction angle
   0.5 degrees higher: how sensitive the problem is, so that errors can be compared in
   friction-angle equivalents (about 10 minutes).
 - shapes: the retaining wall (to 0.35 s) and the pile (whole run) with each shape function
@@ -746,10 +746,12 @@ def perzyna_noise_study(duration=0.12, fluidity=0.5, relaxations=(10.0, 25.0, 10
             print(f"| {law} | {relaxation:g} | {tops[0]:.3f} / {tops[1]:.3f} | {100 * (tops[1] - tops[0]) / tops[1]:+.2f} % | "
                   f"{ratios[0]:.4f} / {ratios[1]:.4f} |", flush=True)
 
-    print(f"\n### The same laws (relaxation {WALL_RELAXATION:g}) with quadratic B-splines, and against the friction angle\n")
+    print(f"\n### The same laws (relaxation {WALL_RELAXATION:g}) with quadratic B-splines and uGIMP, and against the "
+          f"friction angle\n")
     print("| law | linear: change per halving | bspline2: top at cfl 0.4 / 0.2 [mm] | bspline2: change per halving | "
+          "gimp: top at cfl 0.4 / 0.2 [mm] | gimp: change per halving | "
           "linear: top change for phi + 0.5 deg | halving in phi-equivalents [deg] |")
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     laws["rate-independent"] = {}
     for law, values in laws.items():
         if values:
@@ -757,11 +759,13 @@ def perzyna_noise_study(duration=0.12, fluidity=0.5, relaxations=(10.0, 25.0, 10
         values = {**values, "scene.duration": duration}
         linear = [top(small_wall(**values, **{"scene.cfl": cfl})) for cfl in (0.4, 0.2)]
         smooth = [top(small_wall(**values, **{"scene.cfl": cfl, "numerics.shape": "bspline2"})) for cfl in (0.4, 0.2)]
+        gimp = [top(small_wall(**values, **{"scene.cfl": cfl, "numerics.shape": "gimp"})) for cfl in (0.4, 0.2)]
         stronger = top(small_wall(**values, **{"materials.sand.friction_angle": 30.5}))
         halving = (linear[1] - linear[0]) / linear[1]
         per_degree = (stronger - linear[0]) / linear[0] / 0.5
         print(f"| {law} | {100 * halving:+.2f} % | {smooth[0]:.3f} / {smooth[1]:.3f} | "
-              f"{100 * (smooth[1] - smooth[0]) / smooth[1]:+.2f} % | {100 * per_degree * 0.5:+.2f} % | "
+              f"{100 * (smooth[1] - smooth[0]) / smooth[1]:+.2f} % | {gimp[0]:.3f} / {gimp[1]:.3f} | "
+              f"{100 * (gimp[1] - gimp[0]) / gimp[1]:+.2f} % | {100 * per_degree * 0.5:+.2f} % | "
               f"{halving / per_degree:.3f} |", flush=True)
 
 
