@@ -492,8 +492,10 @@ def example_cells_study(names=("retaining_wall", "pile_driving", "column_collaps
 RELAXATIONS = (10.0, 25.0, 100.0, 1000.0)
 
 
-def relaxation_study(names=("retaining_wall", "pile_driving", "column_collapse"), factors=(1, 2)):
-    """Each example at its shipped cfl with each of RELAXATIONS, at cells h / factor."""
+def relaxation_study(names=("retaining_wall", "pile_driving", "column_collapse"), factors=(1, 2), until=None,
+                     stress_substeps=None):
+    """Each example at its shipped cfl with each of RELAXATIONS, at cells h / factor; run to
+    `until` [s] instead of the dt study's last time, and with `stress_substeps`, if given."""
     import jaxmpm
 
     print("\n### Examples against the relaxation kappa (shipped cfl; the last output time of the dt study)\n")
@@ -502,7 +504,9 @@ def relaxation_study(names=("retaining_wall", "pile_driving", "column_collapse")
     print("|---|---|---|" + "---|" * len(RELAXATIONS) + "---|---|")
     durations = {"retaining_wall": 0.4, "pile_driving": 0.2, "column_collapse": 1.0}
     for name in names:
-        base = jaxmpm.load_scene(ROOT / "examples" / f"{name}.toml").with_value("scene.duration", durations[name])
+        base = jaxmpm.load_scene(ROOT / "examples" / f"{name}.toml").with_value("scene.duration", until or durations[name])
+        if stress_substeps is not None:
+            base = base.with_value("numerics.stress_substeps", stress_substeps)
         shipped = base.numerics.relaxation
         for factor in factors:
             cell = base.grid.cell / factor
@@ -781,6 +785,11 @@ def main():
     parser.add_argument("--examples", nargs="+", default=None, help="examples study: only these examples")
     parser.add_argument("--relaxation", type=float, nargs="+", default=None,
                         help="examples study: these numerics.relaxation values (default: 0 and as shipped)")
+    parser.add_argument("--cell-factors", type=int, nargs="+", default=(1, 2),
+                        help="relaxation study: the cells h / factor (default: 1 2)")
+    parser.add_argument("--until", type=float, default=None, help="relaxation study: run each example to this time [s]")
+    parser.add_argument("--stress-substeps", type=int, default=None,
+                        help="relaxation study: numerics.stress_substeps for every run")
     arguments = parser.parse_args()
     import jax
 
@@ -796,7 +805,8 @@ def main():
             example_cells_study(tuple(arguments.examples or ("retaining_wall", "pile_driving", "column_collapse")))
             continue
         if name == "relaxation":
-            relaxation_study(tuple(arguments.examples or ("retaining_wall", "pile_driving", "column_collapse")))
+            relaxation_study(tuple(arguments.examples or ("retaining_wall", "pile_driving", "column_collapse")),
+                             tuple(arguments.cell_factors), arguments.until, arguments.stress_substeps)
             continue
         STUDIES[name]()
         sys.stdout.flush()
