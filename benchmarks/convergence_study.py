@@ -51,10 +51,10 @@ output time and the largest relative change between two runs is reported.
   law carries on average falls short of what the mean rate needs, since (q - m p) / m p =
   (rate / gamma)^(1/N) is concave in the rate for N > 1; J is taken with the power 1/3 for
   both laws, so that for N = 1 it measures the same fluctuation, which that law averages
-  out). Then the same laws and the
-  rate-independent one with quadratic B-splines and with uGIMP, and each law's top after a friction angle
-  0.5 degrees higher: how sensitive the problem is, so that errors can be compared in
-  friction-angle equivalents (about 10 minutes).
+  out). Then the same laws and the rate-independent one with quadratic B-splines and with
+  uGIMP, and each law's top after a friction angle 0.5 degrees higher: how sensitive the
+  problem is, so that errors can be compared in friction-angle equivalents (about 10
+  minutes).
 - shapes: the retaining wall (to 0.35 s) and the pile (whole run) with each shape function
   (linear, gimp, bspline2) at cfl 0.4 and 0.2, and with bspline2 at h/2: which shape carries
   the examples' remaining Delta-t error, and what a smoother shape costs in the cell (about
@@ -498,7 +498,9 @@ def relaxation_study(names=("retaining_wall", "pile_driving", "column_collapse")
     `until` [s] instead of the dt study's last time, and with `stress_substeps`, if given."""
     import jaxmpm
 
-    print("\n### Examples against the relaxation kappa (shipped cfl; the last output time of the dt study)\n")
+    print("\n### Examples against the relaxation kappa (shipped cfl; at "
+          + (f"{until:g} s" if until else "the last output time of the dt study")
+          + (f"; {stress_substeps} stress substeps" if stress_substeps else "") + ")\n")
     print("| example | quantity | cell [m] | " + " | ".join(f"kappa = {k:g}" for k in RELAXATIONS)
           + " | shipped kappa against 1000 | runs [s] |")
     print("|---|---|---|" + "---|" * len(RELAXATIONS) + "---|---|")
@@ -722,15 +724,18 @@ def plastic_rate_rectification(result, exponent, start=0.04, window=0.002):
 def perzyna_noise_study(duration=0.12, fluidity=0.5, relaxations=(10.0, 25.0, 100.0)):
     """The small wall's top at `duration` and the plastic rate's rectification J for Perzyna
     sand of exponent 3 and 1 against the relaxation and the step; then with quadratic
-    B-splines, and each law's sensitivity to the friction angle."""
+    B-splines and uGIMP, and each law's sensitivity to the friction angle."""
     import jaxmpm
 
     laws = {"N = 3": {"materials.sand.exponent": 3.0, "numerics.stress_substeps": 16},
             "N = 1": {"materials.sand.exponent": 1.0, "numerics.stress_substeps": 4}}
 
+    def top_of(t, probes):
+        return -1e3 * at_times(np.asarray(t), np.asarray(probes["wall_top"])[:, 0], (duration,))[0]
+
     def top(scene):
         t, probes, _, _ = run(scene)
-        return -1e3 * at_times(t, probes["wall_top"][:, 0], (duration,))[0]
+        return top_of(t, probes)
 
     print(f"\n### Small rigid wall, Perzyna backfill (fluidity {fluidity:g} 1/s): top at {duration:g} s and the "
           f"plastic rate's rectification J\n")
@@ -740,12 +745,11 @@ def perzyna_noise_study(duration=0.12, fluidity=0.5, relaxations=(10.0, 25.0, 10
         for relaxation in relaxations:
             tops, ratios = [], []
             for cfl in (0.4, 0.2):
-                scene = small_wall(**{"materials.sand.fluidity": fluidity}, **values, **{
-                    "scene.duration": duration, "numerics.relaxation": relaxation, "scene.cfl": cfl})
-                scene = scene.with_value("scene.output_every", jaxmpm.Simulation(scene).dt)
+                scene = small_wall(**{"materials.sand.fluidity": fluidity, **values, "scene.duration": duration,
+                                      "numerics.relaxation": relaxation, "scene.cfl": cfl})
+                scene = scene.with_value("scene.output_every", jaxmpm.Simulation(scene).dt)   # every step kept
                 result = jaxmpm.Simulation(scene).run(progress=False)
-                tops.append(-1e3 * at_times(np.asarray(result.time), np.asarray(result.probes["wall_top"])[:, 0],
-                                            (duration,))[0])
+                tops.append(top_of(result.time, result.probes))
                 ratios.append(plastic_rate_rectification(result, 3.0))
             print(f"| {law} | {relaxation:g} | {tops[0]:.3f} / {tops[1]:.3f} | {100 * (tops[1] - tops[0]) / tops[1]:+.2f} % | "
                   f"{ratios[0]:.4f} / {ratios[1]:.4f} |", flush=True)
