@@ -216,17 +216,27 @@ def draw_references(axes, setup):
             axes.axhline(value, color="k", ls=style, lw=1, label=label)
 
 
+def face_of(probe):
+    """How a contact_force probe's reach is named in the plot: its `facing`, or the whole contact."""
+    if probe.facing is None:
+        return "whole contact"
+    return f"face towards [{probe.facing[0]:g}, {probe.facing[1]:g}]"
+
+
 def draw_thrust(axes, result, setup):
-    """The contact force of the sand on the wall against time: horizontal (away from the
-    sand) raw and averaged, vertical averaged."""
+    """The contact force of the sand on the wall against time, one colour per contact_force
+    probe (the whole contact, or one face of it): horizontal (away from the sand) raw and
+    averaged, vertical averaged (dashed)."""
     sign = setup.sign
-    for probe in probes_of(setup.scene, "contact_force"):
+    for index, probe in enumerate(probes_of(setup.scene, "contact_force")):
         time, force, average, middle, steps = averaged_forces(result, probe)
-        axes.plot(time, sign * force[:, 0], color="C0", alpha=0.2, lw=0.5)
-        axes.plot(middle, sign * average[:, 0], color="C0", label=f"horizontal, {'-' if sign < 0 else '+'}F_x")
-        axes.plot(middle, average[:, 1], color="C1", label="vertical F_y")
-        axes.set_title(f"{probe.name}: force of {probe.pair[0]} on {probe.pair[1]} over their whole contact "
-                       f"(mean over {steps} steps; raw horizontal pale)", fontsize=9)
+        colour = f"C{index}"
+        axes.plot(time, sign * force[:, 0], color=colour, alpha=0.2, lw=0.5)
+        axes.plot(middle, sign * average[:, 0], color=colour,
+                  label=f"{probe.name} ({face_of(probe)}): horizontal, {'-' if sign < 0 else '+'}F_x")
+        axes.plot(middle, average[:, 1], color=colour, ls="--", label=f"{probe.name}: vertical F_y")
+        axes.set_title(f"force of {probe.pair[0]} on {probe.pair[1]} (mean over {steps} steps; raw horizontal pale)",
+                       fontsize=9)
     draw_references(axes, setup)
     axes.set_ylabel("force [N/m]")
     axes.set_xlabel("t [s]")
@@ -279,7 +289,7 @@ def summary(result, setup):
     for probe in probes_of(scene, "contact_force"):
         force = np.asarray(result.probes[probe.name])[1:]
         first, last = force[:AVERAGE_STEPS].mean(axis=0), force[-AVERAGE_STEPS:].mean(axis=0)
-        lines.append(f"{probe.name}: horizontal {sign * first[0]:.1f} -> {sign * last[0]:.1f} N/m, "
+        lines.append(f"{probe.name} ({face_of(probe)}): horizontal {sign * first[0]:.1f} -> {sign * last[0]:.1f} N/m, "
                      f"vertical {first[1]:.1f} -> {last[1]:.1f} N/m "
                      f"(means of the first and last {AVERAGE_STEPS} steps)")
     if scene.name == ACTIVE_SCENE:

@@ -67,11 +67,11 @@ def test_interfaces_keep_momentum_and_kinematic_velocities():
     gradient = jnp.asarray(rng.normal(size=(3, 6, 5, 2)))
     occupied = mass > 0.0
     interfaces = (Interface(0, 1, "a/b"), Interface(0, 2, None, kinematic_second=True), Interface(1, 2, "b/c", kinematic_second=True))
-    new, impulses = resolve_interfaces(interfaces[:1], mass, velocity, gradient, {"a/b": 0.4}, occupied)
+    new, impulses, _ = resolve_interfaces(interfaces[:1], mass, velocity, gradient, {"a/b": 0.4}, occupied)
     momentum = lambda v: jnp.sum(mass[:2, ..., None] * v[:2], axis=(0, 1, 2))
     np.testing.assert_allclose(momentum(new), momentum(velocity), atol=1e-13)
     assert float(jnp.max(jnp.abs(impulses[0]))) > 0.0
-    new, _ = resolve_interfaces(interfaces, mass, velocity, gradient, {"a/b": 0.4, "b/c": 0.0}, occupied)
+    new, _, _ = resolve_interfaces(interfaces, mass, velocity, gradient, {"a/b": 0.4, "b/c": 0.0}, occupied)
     np.testing.assert_array_equal(np.asarray(new[2]), np.asarray(velocity[2]))
     both = np.asarray(occupied[0] & occupied[2])       # bonded to a prescribed field: its velocity
     np.testing.assert_allclose(np.asarray(new[0])[both], np.asarray(velocity[2])[both], atol=1e-13)
@@ -436,6 +436,37 @@ def earth_pressures(friction_angle=30.0, wall_friction=0.0, height=0.5, density=
     return weight * (1 - math.sin(phi)), weight * rankine, weight * coulomb * math.cos(delta)
 
 
+FACES = {"back": (-1.0, 0.0), "base": (0.0, 1.0), "front": (1.0, 0.0), "top": (0.0, -1.0)}
+
+
+def test_a_contact_force_splits_into_the_faces_of_a_wall():
+    # The rigid wall of tests/test_convergence.py (a wall on a sand foundation holding a
+    # backfill behind it, released at t = 0) over its first 0.04 s, with the force of the sand
+    # on it read whole and by face (`facing`: nodes whose normal, sand into wall, lies within
+    # 45 degrees of the direction). The four faces partition the contact; the back carries the
+    # backfill's push towards the open side, the base the wall's weight, and the front and top,
+    # where there is no sand, nothing.
+    from tests.test_convergence import small_wall
+
+    scene = small_wall(duration=0.04)
+    faces = tuple(Probe(name, "contact_force", pair=("sand", "wall"), facing=direction) for name, direction in FACES.items())
+    probes = (Probe("whole", "contact_force", pair=("sand", "wall")),
+              Probe("back_read_backwards", "contact_force", pair=("wall", "sand"), facing=(3.0, 0.0))) + faces
+    sim = Simulation(dataclasses.replace(scene, probes=probes))
+    force = {name: np.asarray(history) for name, history in sim.probes().items()}
+    whole = force["whole"]
+    np.testing.assert_allclose(sum(force[name] for name in FACES), whole, rtol=0, atol=1e-9 * np.abs(whole).max())
+    np.testing.assert_array_equal(force["back_read_backwards"], -force["back"])    # the wall on the sand
+    assert not np.any(force["front"]) and not np.any(force["top"])
+    settled = sim.time > 0.015          # after the first contact's transient
+    back = force["back"][settled].mean(axis=0)
+    assert back[0] < 0.0 and abs(back[1]) <= 0.4 * -back[0]     # towards -x, within Coulomb's mu = 0.4
+    weight = 2400.0 * G * 0.05 * 0.35
+    assert force["base"][settled, 1].mean() > 0.9 * weight
+    with pytest.raises(SceneError, match=r"probes\[2\]\.facing = \[0\.0, 0\.0\] has no direction"):
+        dataclasses.replace(scene, probes=probes[:2] + (dataclasses.replace(faces[0], facing=(0.0, 0.0)),))
+
+
 @pytest.mark.slow
 def test_wall_thrust_falls_from_k0_to_rankine_and_below_with_wall_friction():
     # Smooth wall: before it moves the backfill holds it with 1/2 K0 rho g H^2 (K0 = 1 - sin
@@ -444,11 +475,17 @@ def test_wall_thrust_falls_from_k0_to_rankine_and_below_with_wall_friction():
     # cells 0.025 / 0.0125 m the at-rest thrust is -0.2 / -0.0 % off K0 and the active one
     # +1.9 / +2.4 % off Rankine (the rest of the fall is still under way), hence 1 % and 4 %.
     at_rest, rankine, coulomb = earth_pressures(wall_friction=0.4)
-    sim = Simulation(active_wall())
-    thrust = np.asarray(sim.probes()["thrust"])
+    scene = active_wall()
+    back = Probe("back", "contact_force", pair=("backfill", "wall"), facing=(-1.0, 0.0))
+    sim = Simulation(dataclasses.replace(scene, probes=scene.probes + (back,)))
+    probes = sim.probes()
+    thrust = np.asarray(probes["thrust"])
     late = sim.time > sim.time[-1] - 0.05
     smooth = -thrust[late, 0].mean()
-    assert -thrust[(sim.time > 0.01) & (sim.time < 0.05), 0].mean() == pytest.approx(at_rest, rel=0.01)
+    holding = (sim.time > 0.01) & (sim.time < 0.05)
+    assert -thrust[holding, 0].mean() == pytest.approx(at_rest, rel=0.01)
+    # the wall's back face alone (the `facing` probe) carries the same: only the foot's node differs
+    assert -np.asarray(probes["back"])[holding, 0].mean() == pytest.approx(at_rest, rel=0.01)
     assert smooth == pytest.approx(rankine, rel=0.04)
     # mu = 0: no shear on the wall; only at the node of the wall's foot (the corner of its
     # normal field, on the slip base) does the normal tilt: 2.3 N/m of 750 measured

@@ -130,6 +130,8 @@ def test_scenes_built_in_python_meet_the_schema_bounds():
         (lambda: dataclasses.replace(scene, probes=(jaxmpm.Probe("top", "displacement"),)), "probes[0].at is missing"),
         (lambda: dataclasses.replace(scene, probes=(jaxmpm.Probe("top", "speed", at=(0.1, 0.1)),)),
          "probes[0].kind = 'speed' is not one of"),
+        (lambda: dataclasses.replace(scene, probes=(jaxmpm.Probe("top", "displacement", at=(0.1, 0.1), facing=(1.0, 0.0)),)),
+         "probes[0].facing = [1.0, 0.0] is given on a 'displacement' probe"),
     ]
     for build, words in cases:
         with pytest.raises(SceneError) as caught:

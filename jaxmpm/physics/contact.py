@@ -161,10 +161,11 @@ def resolve_interfaces(interfaces, mass, velocity, mass_gradient, frictions, occ
     """Apply every interface's impulse in turn to the free fields' velocities (`outline_normals`:
     see `interface_normals`).
 
-    Returns (velocity (F, nx, ny, 2), impulses): impulses[k] (nx, ny, 2) is the impulse on the
-    `first` field of interfaces[k] (its `second` field received minus it). Prescribed and rigid
-    fields keep their velocities; what they receive is read from the impulses."""
-    impulses = []
+    Returns (velocity (F, nx, ny, 2), impulses, normals): impulses[k] (nx, ny, 2) is the impulse
+    on the `first` field of interfaces[k] (its `second` field received minus it), normals[k] the
+    unit normals from first into second it used (None for a bonded interface). Prescribed and
+    rigid fields keep their velocities; what they receive is read from the impulses."""
+    impulses, normals = [], []
     safe_mass = jnp.where(occupied, mass, 1.0)[..., None]
     for interface in interfaces:
         normal = None
@@ -179,4 +180,5 @@ def resolve_interfaces(interfaces, mass, velocity, mass_gradient, frictions, occ
         if not interface.kinematic_second:
             velocity = velocity.at[interface.second].add(-impulse / safe_mass[interface.second])
         impulses.append(impulse)
-    return velocity, impulses
+        normals.append(normal)
+    return velocity, impulses, normals

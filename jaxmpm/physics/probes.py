@@ -9,7 +9,8 @@ observe(state, diagnostics, initial_x) -> {name: (k,) array}. Every probe is dif
     body_rotation      (1,) best-fit rotation of a body about its centre of mass [rad]
     peak_speed         (1,) largest speed of a body's points [m/s]
     contact_force      (2,) force of the pair's first body on its second through their
-                       contact, in the step that ended at this time [N per m of thickness]
+                       contact, in the step that ended at this time [N per m of thickness];
+                       with `facing`, through one face only (`facing_key`)
     reaction           (2,) force that kept a prescribed body on its path in that step [N/m]
 
 In axisymmetry forces are whole-ring newtons, 2 pi times the per-radian force the grid holds:
@@ -31,6 +32,23 @@ def nearest_point(seeds, at):
     return int(np.argmin(np.sum((seeds.positions - np.asarray(at)) ** 2, axis=1)))
 
 
+def facing_key(probe, contact):
+    """(pair name, unit direction) of a `contact_force` probe with a `facing`, the direction
+    written for the declared pair's order (reversed when the probe names the pair the other way
+    round, since the normal from its first body into its second is then the opposite one)."""
+    length = math.hypot(*probe.facing)
+    sign = 1.0 if tuple(probe.pair) == contact.pair else -1.0
+    return contact.name, (sign * probe.facing[0] / length, sign * probe.facing[1] / length)
+
+
+def contact_facings(scene):
+    """The (pair name, unit direction) faces that the scene's probes read, each once, in order."""
+    declared = {frozenset(contact.pair): contact for contact in scene.contacts}
+    keys = [facing_key(probe, declared[frozenset(probe.pair)])
+            for probe in scene.probes if probe.kind == "contact_force" and probe.facing is not None]
+    return tuple(dict.fromkeys(keys))
+
+
 def make_probes(scene, seeds):
     readers = {}
     body_slices = {body.name: seeds.slices[index] for index, body in enumerate(scene.bodies)}
@@ -39,7 +57,11 @@ def make_probes(scene, seeds):
     for probe in scene.probes:
         if probe.kind == "contact_force":
             contact = declared[frozenset(probe.pair)]
-            readers[probe.name] = _contact_force(contact.name, ring if tuple(probe.pair) == contact.pair else -ring)
+            sign = ring if tuple(probe.pair) == contact.pair else -ring
+            if probe.facing is None:
+                readers[probe.name] = _contact_force(contact.name, sign)
+            else:
+                readers[probe.name] = _facing_force(facing_key(probe, contact), sign)
         elif probe.kind == "reaction":
             readers[probe.name] = _reaction(probe.body, ring)
         elif probe.kind == "displacement":
@@ -62,6 +84,13 @@ def make_probes(scene, seeds):
 def _contact_force(pair, sign):
     def read(state, diagnostics, initial_x):
         return sign * diagnostics.contact_force[pair]
+
+    return read
+
+
+def _facing_force(key, sign):
+    def read(state, diagnostics, initial_x):
+        return sign * diagnostics.facing_force[key]
 
     return read
 

@@ -79,6 +79,7 @@ from jaxmpm.physics.state import Diagnostics, record_errors
 from jaxmpm.tensors import components, entries, from_entries, stack_last
 
 MASS_FLOOR = 1e-10   # nodes lighter than this fraction of the heaviest point count as empty
+FACE_COSINE = math.sqrt(0.5)   # a face of a contact: normals within 45 degrees of its direction
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,7 +144,8 @@ class Structure:
     for a subcycled body alone on the grid: `local_damping`); corner_radius: in cells, the
     rounding of prescribed bodies' corners in their contact normal (`bodies.corner_radius`);
     stress_substeps: the updates of dt / stress_substeps each step's stress update of a free body
-    that can yield is made of (`materials.base.points_update`).
+    that can yield is made of (`materials.base.points_update`); facings: the (pair name, unit
+    direction) whose face of the contact force the step reports (`facing_forces`).
     """
 
     layout: GridLayout
@@ -162,6 +164,7 @@ class Structure:
     damps: str = "motion"
     corner_radius: float = 1.0
     stress_substeps: int = 1
+    facings: tuple[tuple[str, tuple[float, float]], ...] = ()
 
     @property
     def has_kinematic_bodies(self):
@@ -439,6 +442,21 @@ def contact_forces(structure, impulses, dt):
     }
 
 
+def facing_forces(structure, impulses, normals, dt):
+    """{(pair name, (dx, dy)): (2,) force of the pair's first body on its second through the nodes
+    whose contact normal n (first into second) has n . (dx, dy) >= cos 45 degrees [N/m]}, for
+    each of `structure.facings`: one face of a body, e.g. a wall's back apart from its base."""
+    by_contact = {interface.contact: (impulse, normal)
+                  for interface, impulse, normal in zip(structure.interfaces, impulses, normals)
+                  if interface.contact is not None}
+    forces = {}
+    for contact, (dx, dy) in structure.facings:
+        impulse, normal = by_contact[contact]
+        within = normal[..., 0] * dx + normal[..., 1] * dy >= FACE_COSINE
+        forces[(contact, (dx, dy))] = -jnp.sum(jnp.where(within[..., None], impulse, 0.0), axis=(0, 1)) / dt
+    return forces
+
+
 def transfer_memory(transfer, flip, relaxation, dt, crossing_time):
     """The fraction of each point's own (FLIP) velocity it keeps per step: `flip` with
     transfer = "flip" (per step, as given); with "apic", exp(-dt / tau), tau = relaxation *
@@ -515,12 +533,12 @@ def make_step(structure: Structure):
         grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, nodes.mass > floor)
         velocity_new, motions = impose_body_motions(params, state, structure, grid, frictions, time_new,
                                                     prediction.motions)
-        impulses = []
+        impulses, normals = [], []
         if structure.interfaces:
             outlines = None
             if any(interface.normal_from is not None for interface in structure.interfaces):
                 outlines = prescribed_outline_normals(structure, state, node_positions(layout, particles.x.dtype))
-            velocity_new, impulses = jax.named_call(resolve_interfaces, name="contact")(
+            velocity_new, impulses, normals = jax.named_call(resolve_interfaces, name="contact")(
                 structure.interfaces, nodes.mass, velocity_new, nodes.mass_gradient, frictions, nodes.mass > floor,
                 outlines
             )
@@ -551,6 +569,7 @@ def make_step(structure: Structure):
         for index, block in subcycled:
             particles = put_back(particles, index, block, ended[block.name])
         state = record_errors(state.replace(particles=particles), layout.outside(particles.x))
-        return state, Diagnostics(contact_forces(structure, impulses, dt), reactions)
+        return state, Diagnostics(contact_forces(structure, impulses, dt), reactions,
+                                  facing_forces(structure, impulses, normals, dt))
 
     return step

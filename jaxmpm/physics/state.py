@@ -111,10 +111,15 @@ class Diagnostics:
       reaction: {prescribed body name: (2,) force that kept it on its path in this step, i.e.
         its rate of change of momentum minus its weight and the forces of the bodies around
         it [N/m]}.
+      facing_force: {(pair name, (dx, dy)): (2,) the part of that pair's contact force that
+        passes through the nodes whose contact normal, from the first body into the second,
+        lies within 45 degrees of the unit direction (dx, dy) [N/m]}: one face of a body
+        (`Structure.facings` says which are computed).
     """
 
     contact_force: dict
     reaction: dict
+    facing_force: dict = dataclasses.field(default_factory=dict)
 
 
 def counters_at_start():

@@ -33,7 +33,7 @@ from jaxmpm.kernels.xla_options import compiler_options, jit_with_options
 from jaxmpm.keys import is_concrete
 from jaxmpm.materials.base import material_parameters
 from jaxmpm.scene.parameters import scene_parameters
-from jaxmpm.physics.probes import make_probes
+from jaxmpm.physics.probes import contact_facings, make_probes
 from jaxmpm.running.runner import chunk_length, run_forward
 from jaxmpm.running.results import Result
 from jaxmpm.running.rollout import Checkpointing, checkpointed_rollout, scan_steps, state_bytes
@@ -192,6 +192,7 @@ class Simulation:
             axisymmetric=scene.geometry == "axisymmetric",
             corner_radius=scene.numerics.corner_radius,
             stress_substeps=scene.numerics.stress_substeps,
+            facings=contact_facings(scene),
         )
         self.params = scene_parameters(scene)
         self.step = make_step(self.structure)
@@ -439,6 +440,7 @@ class Simulation:
         return Diagnostics(
             {contact.name: zero for contact in self.scene.contacts},
             {block.name: zero for block in self.structure.blocks_of("prescribed")},
+            {face: zero for face in self.structure.facings},
         )
 
     def probes(self, params=None, initial: State | None = None):

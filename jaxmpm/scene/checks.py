@@ -9,6 +9,8 @@ is one `SceneError` sentence naming the key and the value.
 
 from __future__ import annotations
 
+import math
+
 from jaxmpm.errors import SceneError
 from jaxmpm.keys import check_range, check_value
 from jaxmpm.scene.parts import BODY_PROBE_KINDS, KINEMATICS, NAME, Grid, Kinematics, Rectangle
@@ -291,5 +293,10 @@ def check_probes(scene):
             )
         if probe.kind == "contact_force" and set(probe.pair) not in declared:
             raise SceneError(f"{where}.pair = {list(probe.pair)} is not a pair of [[contacts]].")
+        if probe.facing is not None and probe.kind != "contact_force":
+            raise SceneError(f"{where}.facing = {list(probe.facing)} is given on a {probe.kind!r} probe: "
+                             "only a contact_force probe reads one face.")
+        if probe.facing is not None and not math.hypot(*probe.facing) > 0.0:
+            raise SceneError(f"{where}.facing = {list(probe.facing)} has no direction: give a nonzero [x, y].")
         if probe.kind == "displacement" and not _inside_grid(scene.grid, probe.at):
             raise SceneError(f"{where}.at = {list(probe.at)} is outside the grid.")

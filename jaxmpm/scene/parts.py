@@ -226,7 +226,9 @@ class Probe:
     `body_rotation`: rotation of `body` about its centre of mass, counter-clockwise positive
     [rad] (k = 1); `peak_speed`: the largest speed of a point of `body` [m/s] (k = 1), a
     watch on numerical events that averages hide; `contact_force`: the force the first body of `pair` exerts on the second
-    through their contact [N per m of thickness] (k = 2); `reaction`: the force that keeps the
+    through their contact [N per m of thickness] (k = 2), with `facing` through the nodes whose
+    contact normal (first into second) lies within 45 degrees of that direction only (one face,
+    e.g. a wall's back apart from its base); `reaction`: the force that keeps the
     prescribed `body` on its path (what the driver applies) [N/m] (k = 2)."""
 
     name: str
@@ -234,3 +236,4 @@ class Probe:
     at: tuple[float, float] | None = None
     body: str | None = None
     pair: tuple[str, str] | None = None
+    facing: tuple[float, float] | None = None

@@ -46,7 +46,8 @@ CHECKS = """\
   `initial_stress`; `k0 = "jaky"` needs a material with a friction angle.
 - Drucker–Prager: `dilation_angle` ≤ `friction_angle`; `exponent` only with `fluidity`.
 - A contact pair names two different bodies, at least one free, each pair once; a
-  `contact_force` probe names a declared pair; a `reaction` probe a prescribed body.
+  `contact_force` probe names a declared pair, and its `facing`, if given, is not [0, 0]; a
+  `reaction` probe a prescribed body.
 - `scene.output_every` ≤ `scene.duration`; an explicit `scene.dt` is at most the stable limit
   h / max(c_p + |v|).
 - Axisymmetry: `grid.origin[0] = 0` (the axis), `grid.boundaries.left` is `slip` or `fixed`,

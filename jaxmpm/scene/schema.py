@@ -161,7 +161,12 @@ PROBE = Section(
         "peak_speed": (Key("body", "str", "the body whose fastest point's speed is recorded [m/s] "
                            "(1 component): a watch on local numerical events that averages hide"),),
         "contact_force": (Key("pair", "strings", "a [[contacts]] pair; records the force of the first body "
-                              "on the second [N per m of thickness; whole-ring N in axisymmetry]", length=2),),
+                              "on the second [N per m of thickness; whole-ring N in axisymmetry]", length=2),
+                          Key("facing", "vec2", "records only the force through the nodes where the "
+                              "contact normal, from the first body into the second, lies within 45 degrees "
+                              "of this direction: one face, e.g. [-1, 0] for sand pushing on the back of a "
+                              "wall that faces +x, [0, 1] for the ground under its base; absent: the whole "
+                              "contact", default=None)),
         "reaction": (Key("body", "str", "a prescribed body; records the force that keeps it on its path "
                          "[N/m; whole-ring N in axisymmetry]"),),
     },
