@@ -1,6 +1,6 @@
 """Contact against closed forms, at two or three cell sizes: the figures of docs/contact.md.
 
-    python benchmarks/contact_study.py            # all studies (about 10 minutes on 2 cores)
+    python benchmarks/contact_study.py            # all studies (about 20 minutes on 2 cores)
     python benchmarks/contact_study.py --only gap
 
 - active: examples/retaining_wall_active.toml (a smooth, then a rough wall leaving a level
@@ -10,7 +10,11 @@
   g (sin theta - mu cos theta);
 - gap: an elastic block moving down onto a held slab at 1 m/s without gravity: the distance
   between the two surfaces when the contact force first acts (grid contact sees the bodies
-  about a cell early: their shape functions overlap before they touch).
+  about a cell early: their shape functions overlap before they touch);
+- friction: the small released wall of benchmarks/convergence_study.py (rigid, and elastic
+  with E = 3 GPa) over 0.2 s: the backfill's force on the wall's flat back face (a
+  `contact_force` probe with `facing`), whose vertical part Coulomb friction bounds, |F_y| /
+  |F_x| <= (mu + tan theta) / (1 - mu tan theta) on a face turned by theta.
 A study, not a test: it prints markdown tables and writes each into its section of
 docs/contact.md (between <!-- NAME:begin --> and <!-- NAME:end -->; --no-write to print only).
 """
@@ -140,16 +144,50 @@ def active_study(cells, emit):
                   f"| {after:.1f} ({100 * (after / rankine - 1):+.1f} %) | {seconds:.0f} |")
 
 
+def friction_study(cells, emit, duration=0.2, mu=0.4, window=0.05):
+    import dataclasses
+
+    import jaxmpm
+    import numpy as np
+    from convergence_study import small_wall
+
+    emit("Mean over each 0.05 s ending at t: |F_y| / |F_x| of the back face's force against Coulomb's "
+         f"bound (mu = {mu:g}), and the wall top's displacement.")
+    emit()
+    emit("| wall | cell [m] | t [s] | rotation [deg] | top [mm] | back face F_x [N/m] | F_y [N/m] "
+         "| abs(F_y / F_x) | Coulomb's bound | run [s] |")
+    emit("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    faces = (jaxmpm.Probe("back", "contact_force", pair=("sand", "wall"), facing=(-1.0, 0.0)),
+             jaxmpm.Probe("rotation", "body_rotation", body="wall"))
+    for label, kinematics, young in (("rigid", "rigid", 30.0e9), ("elastic, E = 3 GPa", "free", 3.0e9)):
+        for cell in cells:
+            scene = small_wall(kinematics, young, **{"grid.cell": cell, "scene.duration": duration})
+            scene = dataclasses.replace(scene, probes=scene.probes + faces)
+            start = time.perf_counter()
+            sim = jaxmpm.Simulation(scene)
+            probes = {name: np.asarray(value) for name, value in sim.probes().items()}
+            seconds = time.perf_counter() - start
+            for end in np.arange(2 * window, duration + 1e-9, window):
+                inside = (sim.time > end - window) & (sim.time <= end)
+                force = probes["back"][inside].mean(axis=0)
+                tilt = math.tan(abs(probes["rotation"][inside, 0].mean()))
+                bound = (mu + tilt) / (1.0 - mu * tilt)
+                last = np.flatnonzero(inside)[-1]
+                emit(f"| {label} | {cell:g} | {end:.2f} | {math.degrees(probes['rotation'][last, 0]):.2f} "
+                     f"| {-1e3 * probes['wall_top'][last, 0]:.2f} | {force[0]:.1f} | {force[1]:.1f} "
+                     f"| {abs(force[1] / force[0]):.2f} | {bound:.2f} | {seconds:.0f} |")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--only", choices=["active", "slide", "gap"])
+    parser.add_argument("--only", choices=["active", "slide", "gap", "friction"])
     parser.add_argument("--no-write", action="store_true", help="print only")
     arguments = parser.parse_args()
     import jax
 
     jax.config.update("jax_enable_x64", True)
     studies = {"gap": (gap_study, [0.04, 0.02, 0.01]), "slide": (slide_study, [0.02, 0.01]),
-               "active": (active_study, [0.025, 0.0125])}
+               "active": (active_study, [0.025, 0.0125]), "friction": (friction_study, [0.025, 0.0125, 0.00625])}
     for name, (study, cells) in studies.items():
         if arguments.only in (None, name):
             table = Table()
