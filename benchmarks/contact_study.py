@@ -1,6 +1,7 @@
 """Contact against closed forms, at two or three cell sizes: the figures of docs/contact.md.
 
-    python benchmarks/contact_study.py            # all studies (about 20 minutes on 2 cores)
+    python benchmarks/contact_study.py            # all studies (about 40 minutes on 2 cores, most of it
+                                                  # the elastic wall of --only friction at 6.25 mm)
     python benchmarks/contact_study.py --only gap
 
 - active: examples/retaining_wall_active.toml (a smooth, then a rough wall leaving a level
