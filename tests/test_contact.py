@@ -467,6 +467,21 @@ def test_a_contact_force_splits_into_the_faces_of_a_wall():
         dataclasses.replace(scene, probes=probes[:2] + (dataclasses.replace(faces[0], facing=(0.0, 0.0)),))
 
 
+def test_a_subcycled_wall_reads_its_faces():
+    # A subcycled body steps alone between the scene's steps (physics/subcycling.py), with no
+    # contact of its own: the faces are read in the scene's step. Before its lone step dropped
+    # them, a face probe on a subcycled wall failed while tracing.
+    from tests.test_convergence import small_wall
+
+    scene = small_wall("free", young=30.0e9, substeps="auto", duration=0.02)
+    faces = tuple(Probe(name, "contact_force", pair=("sand", "wall"), facing=direction) for name, direction in FACES.items())
+    sim = Simulation(dataclasses.replace(scene, probes=(Probe("whole", "contact_force", pair=("sand", "wall")),) + faces))
+    force = {name: np.asarray(history) for name, history in sim.probes().items()}
+    np.testing.assert_allclose(sum(force[name] for name in FACES), force["whole"], rtol=0,
+                               atol=1e-9 * np.abs(force["whole"]).max())
+    assert force["back"][-10:, 0].mean() < 0.0                  # the backfill pushes towards -x
+
+
 @pytest.mark.slow
 def test_wall_thrust_falls_from_k0_to_rankine_and_below_with_wall_friction():
     # Smooth wall: before it moves the backfill holds it with 1/2 K0 rho g H^2 (K0 = 1 - sin

@@ -57,14 +57,14 @@ def touches(structure, block):
 
 def alone(structure, block):
     """The Structure of `block` alone on the scene's grid, stepping at dt / n: one field, no
-    interfaces; with APIC its transfer memory exp(-dt / tau) becomes exp(-dt / (n tau)); local
+    interfaces (and no contact faces to read); with APIC its transfer memory exp(-dt / tau) becomes exp(-dt / (n tau)); local
     damping, if any, acts on its deformation only (`solver.local_damping`)."""
     memory = structure.memory if block.memory is None else block.memory
     if structure.transfer == "apic":
         memory = memory ** (1.0 / block.substeps)
     own = dataclasses.replace(block, start=0, stop=block.stop - block.start, field=0, substeps=1, memory=None)
     return dataclasses.replace(structure, dt=structure.dt / block.substeps, memory=memory, bodies=(own,), fields=1,
-                               interfaces=(), damps="deformation")
+                               interfaces=(), damps="deformation", facings=())
 
 
 def points_of(particles, index, block):
