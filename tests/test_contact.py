@@ -529,13 +529,16 @@ def test_thrust_and_reaction_gradients_match_finite_differences():
     # zero tangential velocity at first), the sand goes plastic and slides along the rough
     # wall, and most nodes of each field are empty: every entry of the whole parameter pytree
     # is finite, and d/d(phi, mu) matches central differences (relative step 1e-6, float64;
-    # docs/validation.md §8).
-    sim = Simulation(small_active_wall())
+    # docs/validation.md §8). The back face read alone (`facing`) is in the loss too.
+    scene = small_active_wall()
+    back = Probe("back", "contact_force", pair=("backfill", "wall"), facing=(-1.0, 0.0))
+    sim = Simulation(dataclasses.replace(scene, probes=scene.probes + (back,)))
     late = sim.time > 0.03
 
     def loss(params):
         probes = sim.probes(params)
-        return jnp.mean(probes["thrust"][late, 0]) + jnp.mean(probes["thrust"][late, 1]) + jnp.mean(probes["push"][late, 0])
+        return (jnp.mean(probes["thrust"][late, 0]) + jnp.mean(probes["thrust"][late, 1]) + jnp.mean(probes["push"][late, 0])
+                + 0.5 * jnp.mean(probes["back"][late, 1]))
 
     reverse_mode_against_central_differences(sim, loss, [
         ("sand.friction_angle", 30.0, ("materials", "sand", "friction_angle")),
