@@ -462,20 +462,26 @@ def test_a_dropped_pile_sinks_alike_as_rigid_subcycled_and_stiff_elastic_body():
     # A steel pile (radius 0.04 m, E = 30 GPa) dropped at 2 m/s into sand on the axis
     # (benchmarks/convergence_study.py's dropped pile, whose study gives these rows). The
     # reference is the same pile as an ordinary elastic body at its own step, 37 times shorter
-    # (brute force); its stiff limit, the rigid pile, and the subcycled pile at the sand's step
-    # must sink as it does (measured: 122.5, 123.0 and 121.6 mm at 0.1 s).
-    sinks = {}
-    for label, scene in (("elastic", dropped_pile("free", axisymmetric=True)),
-                         ("rigid", dropped_pile("rigid", axisymmetric=True)),
-                         ("subcycled", dropped_pile("free", axisymmetric=True).with_value(
-                             "bodies.pile.kinematics.substeps", "auto"))):
-        sim = jaxmpm.Simulation(scene)
-        result = sim.run(progress=False)
+    # (brute force); its stiff limit, the rigid pile at that step, must sink as it does, and
+    # the subcycled pile at the sand's step as the rigid pile at that step: the coupling alone
+    # differs (measured 111.2, 112.4 mm at 0.1 s; 113.2 and 115.2 mm at the sand's step,
+    # whose own error, 2.6 % against dt -> 0, docs/convergence.md gives). With the contact
+    # normal not held in the pile's normal cone at its tip the elastic pile sank 122.5 mm; with
+    # its outline's edge on the axis moved off it by the ring's swelling, 106.7 mm.
+    def sinks(scene):
+        result = jaxmpm.Simulation(scene).run(progress=False)
         t = np.asarray(result.time)
-        sinks[label] = np.asarray([-np.asarray(result.probes["sink"])[np.argmin(np.abs(t - at)), 1] for at in (0.05, 0.07, 0.1)])
-    assert sinks["elastic"][-1] > 0.1                          # it went 0.1 m in
-    for label in ("rigid", "subcycled"):
-        np.testing.assert_allclose(sinks[label], sinks["elastic"], rtol=0.02, err_msg=label)
+        return np.asarray([-np.asarray(result.probes["sink"])[np.argmin(np.abs(t - at)), 1] for at in (0.05, 0.07, 0.1)])
+
+    elastic_scene = dropped_pile("free", axisymmetric=True)
+    elastic = sinks(elastic_scene)
+    rigid_at_its_step = sinks(dataclasses.replace(dropped_pile("rigid", axisymmetric=True),
+                                                  dt=jaxmpm.Simulation(elastic_scene).dt))
+    subcycled = sinks(elastic_scene.with_value("bodies.pile.kinematics.substeps", "auto"))
+    rigid = sinks(dropped_pile("rigid", axisymmetric=True))
+    assert elastic[-1] > 0.1                          # it went 0.1 m in
+    np.testing.assert_allclose(rigid_at_its_step, elastic, rtol=0.02)
+    np.testing.assert_allclose(subcycled, rigid, rtol=0.02)
 
 
 def test_a_rigid_body_with_a_radial_velocity_is_refused_in_axisymmetry():

@@ -467,6 +467,31 @@ def test_a_contact_force_splits_into_the_faces_of_a_wall():
         dataclasses.replace(scene, probes=probes[:2] + (dataclasses.replace(faces[0], facing=(0.0, 0.0)),))
 
 
+@pytest.mark.parametrize("kinematics, young", [("rigid", 30.0e9), ("free", 3.0e9)])
+def test_a_walls_flat_back_face_carries_no_more_friction_than_coulomb_allows(kinematics, young):
+    # Coulomb: a flat face turned by theta carries a force whose parts along and across the
+    # (untilted) face obey |F_y| / |F_x| <= (mu + tan theta) / (1 - mu tan theta). The small
+    # wall turns several degrees in 0.2 s and the backfill slides down its back. With the
+    # mass-weighted mean normal alone, a node beside the face where the sand parts from the
+    # wall took the sand's slanted normal, and the back face pulled the wall down with 0.59
+    # of its push against a bound of 0.44 at 0.15 s (0.77 against 0.47 at 0.2 s;
+    # docs/contact.md). Held in the wall's normal cone: at the bound, as sliding must be.
+    from tests.test_convergence import small_wall
+
+    mu, window = 0.4, 0.05
+    scene = small_wall(kinematics, young=young, duration=0.2)
+    probes = (Probe("back", "contact_force", pair=("sand", "wall"), facing=(-1.0, 0.0)),
+              Probe("rotation", "body_rotation", body="wall"))
+    sim = Simulation(dataclasses.replace(scene, probes=probes))
+    force, rotation = (np.asarray(history) for history in sim.probes().values())
+    assert abs(rotation[-1, 0]) > math.radians(3.0)        # a large turn, sliding sand
+    for end in (0.15, 0.2):
+        inside = (sim.time > end - window) & (sim.time <= end)
+        mean = force[inside].mean(axis=0)
+        tilt = math.tan(abs(rotation[inside, 0].mean()))
+        assert abs(mean[1] / mean[0]) <= 1.02 * (mu + tilt) / (1.0 - mu * tilt), (end, mean)
+
+
 def test_a_subcycled_wall_reads_its_faces():
     # A subcycled body steps alone between the scene's steps (physics/subcycling.py), with no
     # contact of its own: the faces are read in the scene's step. Before its lone step dropped

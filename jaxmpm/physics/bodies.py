@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmpm.physics.contact import interface_impulse, interface_normals, safe_norm, unit
+from jaxmpm.physics.contact import cross, interface_impulse, interface_normals, safe_norm, unit
 
 OUTLINE_RESOLUTION = 1e-9    # of an outline's longest edge: nearer than that, a position counts as on it
 TIED_OPPOSITE = 1e-3         # |sum of the tied edges' normals| below this: opposite faces (mid-plane of a
@@ -97,11 +97,6 @@ def node_positions(layout, dtype):
     return jnp.stack([i - layout.ghost, j - layout.ghost], axis=-1) * layout.cell + origin
 
 
-def cross(arm, vectors):
-    """z-component of arm x vector, (...,)."""
-    return arm[..., 0] * vectors[..., 1] - arm[..., 1] * vectors[..., 0]
-
-
 def spin_velocity(spin, arm):
     """omega e_z x arm, (..., 2)."""
     return jnp.stack([-spin * arm[..., 1], spin * arm[..., 0]], axis=-1)
@@ -109,7 +104,11 @@ def spin_velocity(spin, arm):
 
 def turned_by(angle, arms):
     """(n, 2) arms rotated counter-clockwise by `angle` [rad]."""
-    cos, sin = jnp.cos(angle), jnp.sin(angle)
+    return rotated(jnp.cos(angle), jnp.sin(angle), arms)
+
+
+def rotated(cos, sin, arms):
+    """(n, 2) arms rotated counter-clockwise by the angle whose cosine and sine are given."""
     return jnp.stack([cos * arms[:, 0] - sin * arms[:, 1], sin * arms[:, 0] + cos * arms[:, 1]], axis=-1)
 
 
@@ -184,6 +183,25 @@ class Rigid:
 
 
 KINDS = {"prescribed": Prescribed, "rigid": Rigid}   # the kinematic body kinds; "free" bodies have no motion
+
+
+def elastic_outline_now(block, state, corners, centre, turns=True):
+    """A free elastic body's outline corners now: turned and moved by the rigid motion that
+    best fits its points' (least squares, Kabsch in 2-D): the mean of its points moved, and
+    the rotation (cos, sin) ~ (sum r0_p . r_p, sum r0_p x r_p) with r0_p its points' arms
+    from their mean at t = 0 (`BodyBlock.reference_arms`) and r_p now. Exact for a body that
+    has only moved as one; a stiff structure's strain (1e-4) moves its faces by that fraction
+    of its size, far below a cell. A ring (axisymmetry, `turns` False) moves along the axis
+    only, as a rigid one does: a fitted turn would read its bending as a tilt, and its radial
+    swelling would move an edge on the axis off it, where it became a surface."""
+    points = state.particles.x[block.points]
+    mean = jnp.mean(points, axis=0)
+    if not turns:
+        return corners + jnp.stack([jnp.zeros_like(mean[1]), mean[1] - centre[1]])
+    reference = jnp.asarray(block.reference_arms, points.dtype)
+    arms = points - mean
+    cos, sin = unit(jnp.stack([jnp.sum(reference * arms), jnp.sum(cross(reference, arms))]))
+    return mean + rotated(cos, sin, corners - centre)
 
 
 def kinematic_blocks(structure):
@@ -265,9 +283,9 @@ def rigid_residual(motion, grid, frictions, structure, frames, positions, normal
     return jnp.concatenate(balances)
 
 
-def solve_rigid_motions(structure, motions, grid, frictions, positions):
+def solve_rigid_motions(structure, motions, grid, frictions, positions, outlines=None):
     """Each rigid body's end-of-step velocity and spin, solved with its interfaces' impulses
-    (the module's docstring): NEWTON_ITERATIONS Newton steps from the free motion, all but
+    (the module's docstring; `outlines` as `contact.interface_normals` takes them): NEWTON_ITERATIONS Newton steps from the free motion, all but
     the last on values only; the last one differentiable with its Jacobian held, so that its
     derivative is -(dR/dq)^-1 dR/dparams, the implicit function theorem's."""
     blocks = answering_blocks(structure)
@@ -276,7 +294,7 @@ def solve_rigid_motions(structure, motions, grid, frictions, positions):
     frames = {block.name: motions[block.name] for block in blocks}
     solved = jnp.concatenate([jnp.concatenate([frames[b.name].velocity, frames[b.name].spin[None]]) for b in blocks])
     if rigid_interfaces(structure):
-        normals = tuple(None if interface.contact is None else interface_normals(interface, grid.mass, grid.mass_gradient)
+        normals = tuple(None if interface.contact is None else interface_normals(interface, grid.mass, grid.mass_gradient, outlines)
                         for interface, _ in rigid_interfaces(structure))
 
         def residual(motion, grid, frictions, frames, normals):
@@ -297,18 +315,20 @@ def solve_rigid_motions(structure, motions, grid, frictions, positions):
     return motions
 
 
-def impose_body_motions(params, state, structure, grid, frictions, time_new, predicted=None):
+def impose_body_motions(params, state, structure, grid, frictions, time_new, predicted=None, outlines=None):
     """(nodal velocities with each prescribed, rigid and subcycled body's field moving as the
     body, {body: its motion over the step}) from the free fields' trial `grid`: prescribed
     bodies on their path, rigid bodies and subcycled ones (`predicted`: {name: RigidStep of
     its predicted motion, `subcycling.predict`}) solved with their interfaces' impulses
-    (`solve_rigid_motions`). A scene without such bodies: the trial velocities and {}."""
+    (`solve_rigid_motions`, with the contact normals `outlines` give). A scene without such
+    bodies: the trial velocities and {}."""
     predicted = predicted or {}
     if not structure.has_kinematic_bodies and not predicted:
         return grid.velocity, {}
     positions = node_positions(structure.layout, state.particles.x.dtype)
     motions = {**free_motions(params, state, structure, time_new), **predicted}
-    motions = jax.named_call(solve_rigid_motions, name="rigid_bodies")(structure, motions, grid, frictions, positions)
+    motions = jax.named_call(solve_rigid_motions, name="rigid_bodies")(structure, motions, grid, frictions, positions,
+                                                                        outlines)
     velocity = impose_kinematic_fields(grid.velocity, structure, motions, positions)
     for block in structure.bodies:
         if block.name in predicted:
@@ -362,11 +382,13 @@ def convex_outline(vertices):
     return tuple(map(tuple, corners.tolist()))
 
 
-def outline_now(block, state, dtype):
-    """(K, 2) corners of a prescribed or rigid body's outline at the state's time: its scene
-    region moved as its points moved (`outline_now` of its kind)."""
+def outline_now(block, state, dtype, axisymmetric=False):
+    """(K, 2) corners of a body's outline at the state's time: its scene region moved as its
+    points moved (`outline_now` of its kind, `elastic_outline_now` for a free body)."""
     corners = jnp.asarray(block.outline, dtype)
     centre = jnp.asarray(block.outline_centre, dtype)
+    if block.kinematics == "free":
+        return elastic_outline_now(block, state, corners, centre, turns=not axisymmetric)
     return KINDS[block.kinematics].outline_now(block, state, corners, centre)
 
 
@@ -542,6 +564,45 @@ def prescribed_outline_normals(structure, state, positions):
     tolerance = OUTLINE_RESOLUTION * structure.layout.cell
     return {field: union_of([measured[part][1] for part in sorted((field, *block.partners))], tolerance)[1]
             for field, (block, _) in measured.items()}
+
+
+class NormalCone(NamedTuple):
+    """A structure's outline seen from the grid's nodes, (nx, ny, ...): its outward normal
+    (`outline_distances` of the outline with rounded corners), whether that is a face's own
+    normal (on_face), and the normals of the two faces nearest in direction (first, second):
+    where the node is off a face, at a corner, the normals a contact there may take lie
+    between them (`contact.within_cone`)."""
+
+    normal: jax.Array
+    on_face: jax.Array
+    first: jax.Array
+    second: jax.Array
+
+
+FACE_ALIGNMENT = 1e-9   # 1 - n . n_edge below this: the node's outline normal is that face's own
+
+
+def normal_cones(structure, state, positions):
+    """{field: NormalCone at the nodes `positions`} of every rigid or free body whose outline
+    bounds the normal of a contact (`contact.Interface.bounded_by`), from its outline at the
+    state's time (`outline_now`), its corners rounded as a prescribed body's are
+    (`corner_radius`) and its edges that are no surface left out."""
+    fields = {interface.bounded_by for interface in structure.interfaces if interface.bounded_by is not None}
+    cones = {}
+    for block in structure.bodies:
+        if block.field not in fields or block.outline is None:
+            continue
+        corners = outline_now(block, state, positions.dtype, structure.axisymmetric)
+        excluded = no_surface(block, corners, structure)
+        rounded = rounded_outline(corners, excluded, corner_radius(corners, structure.layout.cell, structure.corner_radius))
+        normal = outline_distances(rounded, positions, excluded)[1]
+        faces = edge_normals(corners)                                              # (K, 2)
+        alignment = jnp.where(excluded, -jnp.inf, jnp.sum(normal[..., None, :] * faces, axis=-1))   # (..., K)
+        best = jnp.argmax(alignment, axis=-1)
+        runner_up = jnp.argmax(jnp.where(jnp.arange(len(faces)) == best[..., None], -jnp.inf, alignment), axis=-1)
+        cones[block.field] = NormalCone(normal, jnp.max(alignment, axis=-1) > 1.0 - FACE_ALIGNMENT,
+                                        faces[best], faces[runner_up])
+    return cones
 
 
 def outline_pairs(structure):

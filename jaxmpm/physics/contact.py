@@ -30,8 +30,15 @@ bodies, and between a free and a rigid body (the limit of a stiff free one, whic
 the same), it is the mean of
 their own outward normals, each weighted by its field's mass at the node: where one body only
 grazes a node (a corner, a thin edge, a body just arriving) its normal is poorly resolved and
-its mass there is small, so the well-covered body's normal decides. Both choices are
-antisymmetric (n_ab = -n_ba), so the two fields always get equal and opposite impulses.
+its mass there is small, so the well-covered body's normal decides. Where one side is a
+structure whose outline is known, a rigid body or an elastic body against soil that yields
+(its outline moved by its points' best-fit rigid motion), that mean is held in the
+structure's normal cone (`within_cone`): on a face it is the face's normal, at a corner it
+stays between the two faces' normals. The mean alone let a node beside a wall's flat back
+face, where the sand parts from the wall and has most of the mass, take the sand's slanted
+normal, and the face carried up to twice the friction Coulomb allows (docs/contact.md).
+Both choices are antisymmetric (n_ab = -n_ba), so the two fields always get equal and
+opposite impulses.
 With the plain difference g_a - g_b (or the mass-weighted mean against a held slab), a block
 sliding on a flat slab with mu = 0 met the slab's normal tilted at its leading corner, lost
 7-8 % of its acceleration g sin(theta) and climbed (Nairn 2013, Comput. Model. Eng. Sci. 92,
@@ -61,7 +68,9 @@ class Interface:
     mass-weighted mean of both (`contact_normals`); shared_with: the fields of other parts of
     the same prescribed structure (`bodies.joined_edges`) whose interfaces with the same free
     field come later: at a node where several parts have mass, each part takes the share of
-    the impulse that its mass has among them (`part_share`)."""
+    the impulse that its mass has among them (`part_share`); bounded_by: the field (a rigid
+    body, or an elastic one meeting a body that yields) whose outline's normal cone holds the
+    mass-weighted mean normal (`within_cone`), None for none."""
 
     first: int
     second: int
@@ -70,6 +79,7 @@ class Interface:
     kinematic_second: bool = False
     normal_from: int | None = None
     shared_with: tuple[int, ...] = ()
+    bounded_by: int | None = None
 
 
 def safe_norm(vectors):
@@ -108,17 +118,50 @@ def contact_velocity_change(relative, normal, friction):
     return jnp.where(closing[..., None], change, 0.0)
 
 
+def dot(first, second):
+    """first . second over the last axis (length 2), (...,)."""
+    return first[..., 0] * second[..., 0] + first[..., 1] * second[..., 1]
+
+
+def cross(first, second):
+    """z-component of first x second over the last axis (length 2), (...,)."""
+    return first[..., 0] * second[..., 1] - first[..., 1] * second[..., 0]
+
+
+def within_cone(normal, cone):
+    """The outward normals (..., 2) a structure's contact takes, from the mass-weighted mean
+    `normal` (outward from the structure) and its outline's `bodies.NormalCone`: on a face the
+    face's own normal; off a face (a corner) the mean normal where it lies in the cone between
+    the two nearest faces' normals, else the nearer of the two; the outline's normal where the
+    mean vanishes. A flat face then carries at most Coulomb's friction: a node beside it where
+    the soil's mass dominates, e.g. where soil parts from a wall, took the soil's own slanted
+    normal and pulled the wall down with twice the friction mu allows (docs/contact.md)."""
+    span = cross(cone.first, cone.second)
+    inside = ((cross(cone.first, normal) * span >= 0.0) & (cross(normal, cone.second) * span >= 0.0)
+              & (dot(normal, cone.first + cone.second) > 0.0))
+    nearer = jnp.where((dot(normal, cone.first) >= dot(normal, cone.second))[..., None], cone.first, cone.second)
+    held = jnp.where(inside[..., None], normal, nearer)
+    held = jnp.where((safe_norm(normal) > 0.0)[..., None], held, cone.normal)
+    return jnp.where(cone.on_face[..., None], cone.normal, held)
+
+
 def interface_normals(interface, mass, mass_gradient, outline_normals=None):
     """Unit normals from `first` into `second` at each node, (nx, ny, 2): the prescribed body's
     own outward normal when one side is such a body (from its outline where `outline_normals`
-    {field: (nx, ny, 2)} has it, else from its mass gradient), else `contact_normals`."""
+    {field: (nx, ny, 2)} has it, else from its mass gradient), else `contact_normals`, held in
+    the normal cone of the side `bounded_by` (`within_cone`, its `bodies.NormalCone` from
+    `outline_normals`)."""
     a, b = interface.first, interface.second
     outline_normals = outline_normals or {}
     if interface.normal_from is not None:
         side = interface.normal_from
         own = outline_normals[side] if side in outline_normals else unit(mass_gradient[side])
         return -own if side == b else own
-    return contact_normals(mass[a], mass_gradient[a], mass[b], mass_gradient[b])
+    mean = contact_normals(mass[a], mass_gradient[a], mass[b], mass_gradient[b])
+    if interface.bounded_by is None:
+        return mean
+    outward = 1.0 if interface.bounded_by == a else -1.0
+    return outward * within_cone(outward * mean, outline_normals[interface.bounded_by])
 
 
 def interface_impulse(interface, mass, velocity, normal, friction, occupied):

@@ -64,8 +64,8 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from jaxmpm.physics.bodies import (
-    Grid, impose_body_motions, keep_points_outside, move_kinematic_bodies, node_positions, prescribed_outline_normals,
-    received_impulses,
+    Grid, impose_body_motions, keep_points_outside, move_kinematic_bodies, node_positions, normal_cones,
+    prescribed_outline_normals, received_impulses,
 )
 from jaxmpm.physics.contact import Interface, resolve_interfaces
 from jaxmpm.physics.subcycling import alone, correct, predict, put_back, subcycled_blocks
@@ -91,6 +91,9 @@ class BodyBlock:
     velocity table's times [s] (None: a constant velocity); outline: a prescribed or rigid
     body's region as convex polygon corners, counter-clockwise, at t = 0 (None: not convex, or a
     free body), and outline_centre the mean of its points then (`bodies.keep_points_outside`);
+    a free elastic body whose outline bounds a contact's normal (`contact.Interface.bounded_by`)
+    has its outline too, and reference_arms, its points' offsets from that mean at t = 0
+    (`bodies.elastic_outline_now`);
     joined: its outline's edges that lie on another prescribed body moving with it
     (`bodies.joined_edges`; None: none), and partners the fields of those bodies: together
     they are one structure (a pile's tip and shaft), whose contacts take the normal of their
@@ -109,6 +112,7 @@ class BodyBlock:
     times: tuple[float, ...] | None = None
     outline: tuple | None = None
     outline_centre: tuple[float, float] | None = None
+    reference_arms: tuple | None = None
     joined: tuple[bool, ...] | None = None
     partners: tuple[int, ...] = ()
     memory: float | None = None
@@ -493,6 +497,19 @@ def point_memory(structure):
                            for block, memory in zip(structure.bodies, memories)])
 
 
+def contact_outlines(structure, state):
+    """What the contact normals read of the bodies' outlines at the nodes (`contact.interface_normals`):
+    {field: outward normals} of prescribed bodies, {field: NormalCone} of the outlines that
+    bound a contact's normal; None when no interface asks for them."""
+    prescribed = any(interface.normal_from is not None for interface in structure.interfaces)
+    bounded = any(interface.bounded_by is not None for interface in structure.interfaces)
+    if not (prescribed or bounded):
+        return None
+    positions = node_positions(structure.layout, state.particles.x.dtype)
+    return {**(prescribed_outline_normals(structure, state, positions) if prescribed else {}),
+            **(normal_cones(structure, state, positions) if bounded else {})}
+
+
 def make_step(structure: Structure):
     """The pure step function of a scene: step(params, state) -> (state, diagnostics)."""
     layout, dt = structure.layout, structure.dt
@@ -531,13 +548,11 @@ def make_step(structure: Structure):
         time_new = (state.step + 1).astype(particles.x.dtype) * dt
         prediction = predict(steps_alone, params, particles, structure, subcycled)
         grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, nodes.mass > floor)
+        outlines = contact_outlines(structure, state)
         velocity_new, motions = impose_body_motions(params, state, structure, grid, frictions, time_new,
-                                                    prediction.motions)
+                                                    prediction.motions, outlines)
         impulses, normals = [], []
         if structure.interfaces:
-            outlines = None
-            if any(interface.normal_from is not None for interface in structure.interfaces):
-                outlines = prescribed_outline_normals(structure, state, node_positions(layout, particles.x.dtype))
             velocity_new, impulses, normals = jax.named_call(resolve_interfaces, name="contact")(
                 structure.interfaces, nodes.mass, velocity_new, nodes.mass_gradient, frictions, nodes.mass > floor,
                 outlines

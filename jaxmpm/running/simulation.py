@@ -70,7 +70,8 @@ def velocity_fields(scene: Scene):
     prescribed, rigid or subcycled bodies get a field each; all other bodies share field 0 (no
     slip among them). Every pair of fields meets at an interface: frictional contact for a
     declared pair, bonded (no slip) otherwise; two prescribed, rigid or subcycled fields ignore
-    each other."""
+    each other. A contact takes a prescribed side's own normal, else the mass-weighted mean
+    normal held in the normal cone of a rigid or elastic side's outline (`bounding_side`)."""
     paired = {name for contact in scene.contacts for name in contact.pair}
     whole = {body.name for body in scene.bodies if body.kinematics.type != "free" or body.kinematics.subcycled}
     own = [body.name for body in scene.bodies if body.name in paired or body.name in whole]
@@ -81,6 +82,7 @@ def velocity_fields(scene: Scene):
     kinematic = {field[name] for name in whole}    # keep their velocity in contact (`contact.Interface`)
     prescribed = {field[body.name] for body in scene.bodies if body.kinematics.type == "prescribed"}
     contacts = {frozenset(field[name] for name in contact.pair): contact for contact in scene.contacts}
+    outline_rank = outline_ranks(scene, field)
     interfaces = []
     for pair in itertools.combinations(range(count), 2):
         if set(pair) <= kinematic:
@@ -89,8 +91,34 @@ def velocity_fields(scene: Scene):
         first, second = pair if contact is None else (field[contact.pair[0]], field[contact.pair[1]])
         name = None if contact is None else contact.name      # a contact keeps its pair's order
         held = next((side for side in (first, second) if side in prescribed), None)
-        interfaces.append(Interface(first, second, name, first in kinematic, second in kinematic, held))
+        bounded = None if held is not None or contact is None else bounding_side(first, second, outline_rank)
+        interfaces.append(Interface(first, second, name, first in kinematic, second in kinematic, held,
+                                    bounded_by=bounded))
     return field, count, tuple(interfaces)
+
+
+def outline_ranks(scene: Scene, field: dict) -> dict:
+    """{field: 2 for a rigid body, 1 for a free elastic one (its law does not yield), 0
+    otherwise}, for the fields of bodies with a convex region: how well the body's outline
+    is known at any time (a rigid body's exactly, a stiff elastic one's to its strain)."""
+    ranks = {}
+    for body in scene.bodies:
+        convex = convex_outline(body.region.vertices) is not None
+        if body.kinematics.type == "rigid" and convex:
+            ranks[field[body.name]] = 2
+        elif body.kinematics.type == "free" and convex and not scene.material_of(body).law.yields:
+            ranks[field[body.name]] = 1
+    return ranks
+
+
+def bounding_side(first, second, rank):
+    """The side of a contact (neither prescribed) whose outline bounds its normal
+    (`contact.Interface.bounded_by`): the one whose outline is better known, None if neither
+    or both alike (two elastic bodies: the mass-weighted mean alone)."""
+    first_rank, second_rank = rank.get(first, 0), rank.get(second, 0)
+    if first_rank == second_rank:
+        return None
+    return first if first_rank > second_rank else second
 
 
 def joined_structures(scene: Scene) -> dict:
@@ -161,11 +189,13 @@ class Simulation:
             self.seeds = padded(self.seeds, self.mesh.devices.size)
         self.time = np.arange(self.steps + 1) * self.dt
         field, fields, interfaces = velocity_fields(scene)
+        bounding = {interface.bounded_by for interface in interfaces}
         memory = transfer_memory(scene.transfer, scene.numerics.flip, scene.numerics.relaxation, self.dt,
                                  slowest_crossing_time(scene))
         blocks = tuple(
             BodyBlock(body.name, body.material, scene.material_of(body).law, start, stop, field[body.name],
-                      body.kinematics.type, body.kinematics.time, *self.outline_of(body, start, stop),
+                      body.kinematics.type, body.kinematics.time,
+                      *self.outline_of(body, start, stop, field[body.name] in bounding),
                       memory=body_memory(memory, scene.material_of(body).law, scene.transfer, scene.numerics.relaxation),
                       substeps=substeps(scene, body, self.dt))
             for body, (start, stop) in zip(scene.bodies, self.seeds.slices)
@@ -236,19 +266,21 @@ class Simulation:
             self._variants[derivatives] = variant
         return self._variants[derivatives]
 
-    def outline_of(self, body, start, stop):
-        """(outline, outline_centre) of a prescribed or rigid body whose region is convex (see
-        `solver.BodyBlock`); (None, None) otherwise. A rigid body's centre is its centre of
-        mass (its density is uniform), which its translation and rotation refer to."""
-        if body.kinematics.type == "free":
-            return None, None
+    def outline_of(self, body, start, stop, bounds):
+        """(outline, outline_centre, reference_arms) of a prescribed or rigid body whose region
+        is convex, or of a free body whose outline `bounds` a contact's normal (see
+        `solver.BodyBlock`); Nones otherwise. A rigid body's centre is its centre of mass (its
+        density is uniform), which its translation and rotation refer to."""
         outline = convex_outline(body.region.vertices)
-        if outline is None:
-            return None, None
+        if outline is None or (body.kinematics.type == "free" and not bounds):
+            return None, None, None
         positions = self.seeds.positions[start:stop]
         weights = self.seeds.volumes[start:stop] if body.kinematics.type == "rigid" else np.ones(stop - start)
         centre = weights @ positions / weights.sum()
-        return outline, (float(centre[0]), float(centre[1]))
+        arms = None
+        if body.kinematics.type == "free":
+            arms = tuple(map(tuple, (positions - centre).tolist()))
+        return outline, (float(centre[0]), float(centre[1])), arms
 
     @property
     def several_fields(self) -> bool:
