@@ -56,6 +56,8 @@ import dataclasses
 
 import jax.numpy as jnp
 
+GRAZING_SHARE = 0.05   # a contact's impulse ramps in over the lighter free field's mass share 0 ... this (`grazing_weight`)
+
 
 @dataclasses.dataclass(frozen=True)
 class Interface:
@@ -183,8 +185,26 @@ def interface_impulse(interface, mass, velocity, normal, friction, occupied):
         total = mass[a] + mass[b]
         both = occupied[a] & occupied[b]
         reduced = mass[a] * mass[b] / jnp.where(both, total, 1.0)
+        if interface.contact is not None:
+            reduced = reduced * grazing_weight(mass[a], mass[b], both)
     both = occupied[a] & occupied[b]
     return jnp.where(both[..., None], reduced[..., None] * change, 0.0)
+
+
+def grazing_weight(mass_first, mass_second, both):
+    """(nx, ny) factor on a contact's impulse between two free fields: the lighter field's share
+    s = min(m_a, m_b) / (m_a + m_b) of the node's mass over GRAZING_SHARE, at most 1.
+
+    A point that has just crossed into a cell gives its new nodes a mass m_p N_I that starts at
+    zero but a force -V_p sigma_p . grad N_I that does not (grad N_I jumps to +-1/h): its field's
+    trial velocity there is f dt / m, and the impulse that stops it closing, J ~ m_r dv ~ dt f . n,
+    handed the other body that whole force whatever the mass behind it. A stiff elastic wall
+    pivoting on its toe kept its corner point 0.1 mm past a cell edge for thousands of steps, and
+    the couple of its toe stress (some 500 N/m at 12.5 mm cells, growing as the sand gave way)
+    went into the sand node in front of it until the sand there ran away (docs/contact.md).
+    Ramped in, the impulse grows with the mass behind it; momentum is kept (J on a, -J on b)."""
+    share = jnp.minimum(mass_first, mass_second) / jnp.where(both, mass_first + mass_second, 1.0)
+    return jnp.clip(share / GRAZING_SHARE, 0.0, 1.0)
 
 
 def part_share(interface, mass, occupied):
