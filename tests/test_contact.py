@@ -77,6 +77,72 @@ def test_interfaces_keep_momentum_and_kinematic_velocities():
     np.testing.assert_allclose(np.asarray(new[0])[both], np.asarray(velocity[2])[both], atol=1e-13)
 
 
+def test_a_grazing_free_field_hands_the_other_field_no_more_than_its_mass_share_allows():
+    # One node where a stiff wall's field has 2e-5 of the node's mass but a trial velocity of
+    # 40 m/s into the sand (a wall point 0.1 mm past a cell edge: mass m N_I from a weight near
+    # zero, force from grad N_I = 1/h; the small elastic wall at 12.5 mm, docs/contact.md,
+    # "Grazing nodes"), and one where both fields are well covered. Unramped, the impulse
+    # m_r dv at the first node is the wall's whole momentum there, 3000 m/s^2 on the sand
+    # node, and that blew the sand up; ramped over the lighter share up to GRAZING_SHARE it is
+    # share / GRAZING_SHARE of that, and the covered node is unchanged. Momentum is kept.
+    from jaxmpm.physics.contact import GRAZING_SHARE, interface_impulse
+
+    wall, sand = 3.3e-6, 0.166
+    mass = jnp.asarray([[[wall, 0.1]], [[sand, 0.1]]])                 # (field, 1, 2 nodes)
+    velocity = jnp.asarray([[[[0.0, -40.0], [0.0, -1.0]]], [[[0.0, 0.0], [0.0, 0.0]]]])
+    normal = jnp.asarray([[[0.0, -1.0], [0.0, -1.0]]])               # wall into sand
+    occupied = mass > 0.0
+    impulse = np.asarray(interface_impulse(Interface(0, 1, "wall/sand"), mass, velocity, normal, 0.4, occupied))
+    reduced = wall * sand / (wall + sand)
+    share = wall / (wall + sand)
+    np.testing.assert_allclose(impulse[0, 0], [0.0, 40.0 * reduced * share / GRAZING_SHARE], rtol=1e-12)
+    np.testing.assert_allclose(impulse[0, 1], [0.0, 1.0 * 0.05], rtol=1e-12)   # m_r = 0.05, closing 1 m/s
+    outward = jnp.asarray([[[[0.0, -1.0]] * 2], [[[0.0, 1.0]] * 2]])      # wall above, sand below
+    new, impulses, _ = resolve_interfaces((Interface(0, 1, "wall/sand"),), mass, velocity, outward,
+                                          {"wall/sand": 0.4}, occupied)
+    np.testing.assert_allclose(np.asarray(impulses[0]), impulse, rtol=1e-12)
+    momentum = lambda v: jnp.sum(mass[..., None] * v, axis=(0, 1, 2))
+    np.testing.assert_allclose(momentum(new), momentum(velocity), rtol=0, atol=1e-15)
+
+
+def test_a_structures_normal_cone_holds_the_mean_normal_between_its_faces():
+    # A unit square's cone at three nodes: on its left face (the face's normal whatever the
+    # mean), beyond its bottom-left corner with a mean normal inside the cone (kept) and one
+    # outside it (the nearer face's normal). A convex body's surface pushes only that way.
+    from jaxmpm.physics.bodies import NormalCone, edge_normals
+    from jaxmpm.physics.contact import within_cone
+
+    faces = np.asarray(edge_normals(jnp.asarray([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])))
+    bottom, left = faces[0], faces[3]
+    np.testing.assert_allclose([bottom, left], [[0.0, -1.0], [-1.0, 0.0]], atol=1e-15)
+    cone = NormalCone(normal=jnp.asarray([left, [-0.6, -0.8], [-0.6, -0.8]]), on_face=jnp.asarray([True, False, False]),
+                      first=jnp.asarray([left] * 3), second=jnp.asarray([bottom] * 3))
+    held = np.asarray(within_cone(jnp.asarray([[-0.6, -0.8], [-0.8, -0.6], [-0.6, 0.8]]), cone))
+    np.testing.assert_array_equal(held, [left, [-0.8, -0.6], left])
+
+
+def test_an_elastic_structures_outline_follows_its_points_best_fit_motion():
+    # Points turned by 0.3 rad about their mean and moved by (0.2, -0.1): the outline is the
+    # region turned and moved alike (exact for a rigid motion; Kabsch in 2-D); in axisymmetry
+    # (a ring) it only moves along the axis.
+    from types import SimpleNamespace
+
+    from jaxmpm.physics.bodies import outline_now, turned_by
+
+    rng = np.random.default_rng(1)
+    points = rng.uniform([0.0, 0.0], [0.1, 0.4], (50, 2))
+    centre = points.mean(axis=0)
+    region = np.asarray([[0.0, 0.0], [0.1, 0.0], [0.1, 0.4], [0.0, 0.4]])
+    block = SimpleNamespace(kinematics="free", points=slice(0, 50), outline=tuple(map(tuple, region)),
+                            outline_centre=tuple(centre), reference_arms=tuple(map(tuple, points - centre)))
+    moved = np.asarray(turned_by(0.3, jnp.asarray(points - centre))) + centre + [0.2, -0.1]
+    state = SimpleNamespace(particles=SimpleNamespace(x=jnp.asarray(moved)))
+    expected = np.asarray(turned_by(0.3, jnp.asarray(region - centre))) + centre + [0.2, -0.1]
+    np.testing.assert_allclose(outline_now(block, state, jnp.float64), expected, atol=1e-14)
+    np.testing.assert_allclose(outline_now(block, state, jnp.float64, axisymmetric=True),
+                               region + [0.0, moved[:, 1].mean() - centre[1]], atol=1e-14)
+
+
 # --------------------------------------------------------------------------- block on a slab
 
 
