@@ -285,8 +285,8 @@ def rigid_residual(motion, grid, frictions, structure, frames, positions, normal
 
 def solve_rigid_motions(structure, motions, grid, frictions, positions, outlines=None):
     """Each rigid body's end-of-step velocity and spin, solved with its interfaces' impulses
-    (the module's docstring; `outlines` as `contact.interface_normals` takes them): NEWTON_ITERATIONS Newton steps from the free motion, all but
-    the last on values only; the last one differentiable with its Jacobian held, so that its
+    (the module's docstring; `outlines` as `contact.interface_normals` takes them):
+    NEWTON_ITERATIONS Newton steps from the free motion, all but the last on values only; the last one differentiable with its Jacobian held, so that its
     derivative is -(dR/dq)^-1 dR/dparams, the implicit function theorem's."""
     blocks = answering_blocks(structure)
     if not blocks:
@@ -294,7 +294,8 @@ def solve_rigid_motions(structure, motions, grid, frictions, positions, outlines
     frames = {block.name: motions[block.name] for block in blocks}
     solved = jnp.concatenate([jnp.concatenate([frames[b.name].velocity, frames[b.name].spin[None]]) for b in blocks])
     if rigid_interfaces(structure):
-        normals = tuple(None if interface.contact is None else interface_normals(interface, grid.mass, grid.mass_gradient, outlines)
+        normals = tuple(None if interface.contact is None
+                        else interface_normals(interface, grid.mass, grid.mass_gradient, outlines)
                         for interface, _ in rigid_interfaces(structure))
 
         def residual(motion, grid, frictions, frames, normals):

@@ -70,9 +70,10 @@ class Interface:
     mass-weighted mean of both (`contact_normals`); shared_with: the fields of other parts of
     the same prescribed structure (`bodies.joined_edges`) whose interfaces with the same free
     field come later: at a node where several parts have mass, each part takes the share of
-    the impulse that its mass has among them (`part_share`); bounded_by: the field (a rigid
-    body, or an elastic one meeting a body that yields) whose outline's normal cone holds the
-    mass-weighted mean normal (`within_cone`), None for none."""
+    the impulse that its mass has among them (`part_share`); bounded_by: the field whose
+    outline's normal cone holds the mass-weighted mean normal (`within_cone`): a rigid body,
+    or an elastic one whose partner's outline is known less well (`simulation.bounding_side`);
+    None for none."""
 
     first: int
     second: int
