@@ -139,7 +139,9 @@ def test_a_stiff_elastic_wall_moves_like_the_rigid_one(stiff_elastic_wall):
     # E = 30 GPa is 6000 times the sand's modulus: the elastic wall's own strain is negligible,
     # so it must move as the rigid one does. Compared at the same dt (the elastic wall's p-wave
     # sets a step 60 times shorter), so that only the coupling differs. Measured
-    # (docs/convergence.md): within 1.2 % over 0.2 s. Before the elastic wall's points kept
+    # (docs/convergence.md): within 1.4 % over 0.2 s, both walls holding the contact normal in
+    # their outline's normal cone (1.2 % when both took the mean normal alone). Before the
+    # elastic wall's points kept
     # their own velocity (`solver.body_memory`), the relaxation pulled them towards an APIC
     # velocity that loses a thin body's rotation: 2.3 % behind at 0.1 s and 5.7 % at 0.2 s;
     # before the rigid body met the sand with the mean normal, the rigid wall moved 40 %
