@@ -117,6 +117,18 @@ def twin_observations(noise=0.0, seed=0, text=TWIN):
     return inverse.Observations.from_arrays(data, sigma=sigma)
 
 
+OTHER = {"sand.friction_angle": 20.0, "sand.fluidity": 8.0, "sand.exponent": 1.5}
+
+
+@functools.cache
+def levenberg_marquardt_fit(starts):
+    """Three Levenberg–Marquardt iterations on the viscoplastic twin (noise 1e-5, seed 2) from
+    the named starts (a tuple of "WRONG" and "OTHER"), run once for the tests that compare them."""
+    named = {"WRONG": WRONG, "OTHER": OTHER}
+    return inverse.calibrate(twin_simulation(), twin_observations(noise=1e-5, seed=2), FIT,
+                             starts=[named[name] for name in starts], max_iterations=3, progress=False)
+
+
 def test_loss_gradient_matches_central_differences():
     # docs/validation.md §8: central differences, relative step 1e-6, float64.
     sim = twin_simulation()
@@ -175,11 +187,10 @@ def test_a_single_start_runs_unbatched_and_follows_its_batched_path():
     assert not isinstance(seen[0], jax.core.Tracer)      # one start: called as it is, not under vmap
     assert isinstance(seen[2], jax.core.Tracer)          # two starts: vmapped
 
-    sim = twin_simulation(ELASTIC_TWIN)
-    observations = twin_observations(noise=1e-5, text=ELASTIC_TWIN)
-    options = dict(optimizer="adam", learning_rate=0.05, max_iterations=3, progress=False)
-    alone = inverse.calibrate(sim, observations, ELASTIC_FIT, starts=[ELASTIC_WRONG], **options)
-    copies = inverse.calibrate(sim, observations, ELASTIC_FIT, starts=[ELASTIC_WRONG, ELASTIC_WRONG], **options)
+    # Levenberg–Marquardt on the viscoplastic twin: the programs of one start and of a batch
+    # of two are those the other tests compile.
+    alone = levenberg_marquardt_fit(("WRONG",))
+    copies = levenberg_marquardt_fit(("WRONG", "WRONG"))
     np.testing.assert_allclose(alone.history["loss"][:, 0], copies.history["loss"][:, 0], rtol=1e-10)
     np.testing.assert_allclose(alone.final_values[0], copies.final_values[0], rtol=1e-10)
 
@@ -189,12 +200,9 @@ def test_levenberg_marquardt_starts_run_vmapped_exactly_as_alone():
     # [WRONG, other] follows, to round-off, its path in a batch of copies of itself (one compiled
     # batch size). (That LM and L-BFGS reach the same optimum from a far start is measured in
     # benchmarks/calibration_study.py, too slow for the tests.)
-    sim = twin_simulation()
-    observations = twin_observations(noise=1e-5, seed=2)
-    other = {"sand.friction_angle": 20.0, "sand.fluidity": 8.0, "sand.exponent": 1.5}
-    together = inverse.calibrate(sim, observations, FIT, starts=[WRONG, other], max_iterations=3, progress=False)
-    for index, start in enumerate([WRONG, other]):
-        alone = inverse.calibrate(sim, observations, FIT, starts=[start, start], max_iterations=3, progress=False)
+    together = levenberg_marquardt_fit(("WRONG", "OTHER"))
+    for index, start in enumerate(("WRONG", "OTHER")):
+        alone = levenberg_marquardt_fit((start, start))
         np.testing.assert_allclose(together.history["loss"][:, index], alone.history["loss"][:, 0], rtol=1e-10)
     assert np.all(together.history["loss"][-1] < together.history["loss"][0])
 
