@@ -50,9 +50,11 @@ def test_a_chunked_run_gives_the_same_numbers(tmp_path, length, calls):
 
 
 def start_run(scene_path, output, *extra):
+    """`jaxmpm run` in a subprocess. It loads the programs that the `long_scene` fixture compiled
+    from the session's compilation cache (tests/conftest.py); every signal below comes after
+    its first chunk, so after they are loaded."""
     command = [sys.executable, "-m", "jaxmpm.cli", "run", str(scene_path), "-o", str(output), "--quiet", *extra]
-    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "JAXMPM_CACHE_DIR": "off"})
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def steps_in(path) -> int:
