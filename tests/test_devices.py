@@ -1,7 +1,11 @@
 """Several devices: ensembles sharded over a batch axis, on two forced host devices.
 
 Each check runs in a subprocess started with XLA_FLAGS=--xla_force_host_platform_device_count=2
-(the device count is fixed when JAX starts, so it cannot change inside the test process)."""
+(the device count is fixed when JAX starts, so it cannot change inside the test process). The
+children keep the suite's own XLA flags (tests/conftest.py) and compile with LLVM's
+optimisations off (--xla_backend_optimization_level=0): their scenes run a few dozen steps, so
+compiling is nearly all their time, and it takes less than half as long; each comparison is
+between programs of the same child, compiled alike."""
 
 import json
 import os
@@ -10,6 +14,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+QUICK_TO_COMPILE = "--xla_backend_optimization_level=0"
 
 CHILD = r"""
 import json
@@ -99,7 +104,8 @@ print(json.dumps({"points": alone.point_count, "padded_points": int(state.partic
 
 
 def run_on_devices(code, count=2):
-    environment = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={count}",
+    flags = f"{os.environ.get('XLA_FLAGS', '')} {QUICK_TO_COMPILE} --xla_force_host_platform_device_count={count}"
+    environment = dict(os.environ, XLA_FLAGS=flags.strip(),
                        PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])))
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=environment,
                           timeout=600)

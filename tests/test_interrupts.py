@@ -19,9 +19,13 @@ from jaxmpm.running.output import resumable_steps
 from jaxmpm.running.runner import chunk_length, interval_calls
 from tests.scenes import BLOCK
 
-# One output interval of 135,000 steps (about 4 s on 2 cores): before runs were chunked, a
-# signal was acted on only at the end of it.
-LONG = BLOCK.replace("duration = 0.01", "duration = 100.0").replace("output_every = 0.005", "output_every = 100.0")
+# One output interval of 43,756 steps of 512 points (about 4.7 s of CPU, in chunks of 1,953
+# steps): before runs were chunked, a signal was acted on only at the end of it. (The block at
+# its own 128 points needed 137,000 steps for as long an interval, and the run file takes a
+# row per step.)
+LONG_INTERVAL = 16.0
+LONG = (BLOCK.replace("cell = 0.05", "cell = 0.025").replace("duration = 0.01", f"duration = {LONG_INTERVAL}")
+        .replace("output_every = 0.005", f"output_every = {LONG_INTERVAL}"))
 
 
 def test_the_chunk_bounds_the_work_per_call_and_divides_the_interval_where_it_can():
@@ -50,9 +54,11 @@ def test_a_chunked_run_gives_the_same_numbers(tmp_path, length, calls):
 
 
 def start_run(scene_path, output, *extra):
+    """`jaxmpm run` in a subprocess. It loads the programs that the `long_scene` fixture compiled
+    from the session's compilation cache (tests/conftest.py); every signal below comes after
+    its first chunk, so after they are loaded."""
     command = [sys.executable, "-m", "jaxmpm.cli", "run", str(scene_path), "-o", str(output), "--quiet", *extra]
-    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "JAXMPM_CACHE_DIR": "off"})
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def steps_in(path) -> int:
@@ -135,11 +141,11 @@ def test_a_second_signal_stops_at_once_and_leaves_a_valid_file(long_scene, tmp_p
 
 
 def test_a_second_signal_stops_at_once_inside_a_long_compiled_call(tmp_path):
-    # Calls of a whole interval of 137,000 steps (about 4 s here), as one step of a scene of
-    # millions of points takes: the first signal waits for the call to end, the second does not.
+    # Calls of a whole interval of the long scene (43,756 steps, about 4.7 s here), as one step
+    # of a scene of millions of points takes: the first signal waits for the call to end, the
+    # second does not.
     scene_path = tmp_path / "two_calls.toml"
-    scene_path.write_text(BLOCK.replace("duration = 0.01", "duration = 200.0")
-                          .replace("output_every = 0.005", "output_every = 100.0"))
+    scene_path.write_text(LONG.replace(f"duration = {LONG_INTERVAL}", f"duration = {2 * LONG_INTERVAL}"))
     output = tmp_path / "two_calls.h5"
     driver = ("import sys, jaxmpm.running.runner; jaxmpm.running.runner.CHUNK_POINT_STEPS = 1e12; "
               "from jaxmpm.cli import main; sys.exit(main(sys.argv[1:]))")
@@ -157,9 +163,9 @@ def test_a_second_signal_stops_at_once_inside_a_long_compiled_call(tmp_path):
     assert time.monotonic() - signalled < 1.5            # not the rest of the call (3 s or more)
     assert process.returncode == 130 and "interrupted at once" in err and "Traceback" not in err, err
     result = jaxmpm.Result.load(output)                  # valid, marked interrupted at its last step written
-    assert not result.complete and result.message == "interrupted at t = 100 s"
+    assert not result.complete and result.message == f"interrupted at t = {LONG_INTERVAL:g} s"
     assert len(result.snapshots["time"]) == 2            # t = 0 and the end of the first call
-    assert resumable_steps(output) == len(result.probes["top"]) - 1 > 100_000
+    assert resumable_steps(output) == len(result.probes["top"]) - 1 > 40_000
 
 
 def wait_for_handler(process, timeout=30.0):

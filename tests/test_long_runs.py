@@ -19,7 +19,7 @@ from tests.scenes import BLOCK
 ROOT = Path(__file__).resolve().parents[1]
 # The retaining wall of Więckowski's Fig. 1, coarsened: viscoplastic sand with plastic history,
 # a rigid wall in frictional contact, geostatic start; every kind of state a run carries.
-WALL = [str(ROOT / "examples" / "retaining_wall.toml"), "--set", "grid.cell=0.05", "--set", "scene.duration=0.4",
+WALL = [str(ROOT / "examples" / "retaining_wall.toml"), "--set", "grid.cell=0.05", "--set", "scene.duration=0.2",
         "--set", "scene.output_every=0.02"]
 
 
