@@ -50,13 +50,17 @@ def _append(dataset, rows):
     dataset[start:] = rows
 
 
+ROWS_PER_CHUNK = 1024       # rows of a probe history stored together (a snapshot is its own chunk)
+
+
 def _growing(group, name, first_rows, compress=False):
-    """A dataset holding `first_rows`, resizable along its first axis."""
+    """A dataset holding `first_rows`, resizable along its first axis: a compressed snapshot
+    per chunk, or ROWS_PER_CHUNK rows of a history (a chunk a row made a run's every step an
+    HDF5 chunk of its own, written one by one)."""
     first_rows = np.asarray(first_rows)
     options = dict(compression="gzip", compression_opts=4) if compress else {}
     return group.create_dataset(name, data=first_rows, maxshape=(None, *first_rows.shape[1:]),
-                                chunks=(1 if compress else max(1, min(len(first_rows), 1024)), *first_rows.shape[1:]),
-                                **options)
+                                chunks=(1 if compress else ROWS_PER_CHUNK, *first_rows.shape[1:]), **options)
 
 
 def resumable_steps(path) -> int:
