@@ -9,6 +9,7 @@ import pytest
 
 import jaxmpm
 from jaxmpm.cli import main
+from jaxmpm.running.output import ROWS_PER_CHUNK
 from tests.scenes import BLOCK
 
 
@@ -45,6 +46,10 @@ def test_run_writes_the_documented_schema(block_file, tmp_path, capsys):
         assert file["snapshots/block/stress"].shape == (snapshots, sim.point_count, 3, 3)
         assert file["snapshots/block/x"].shape == (snapshots, sim.point_count, 2)
         assert file["snapshots/block/plastic_strain"].shape == (snapshots, sim.point_count)
+        # histories in chunks of many rows (one a step made a long run's file four times larger),
+        # a snapshot compressed in a chunk of its own (docs/output_files.md)
+        assert file["time"].chunks == (ROWS_PER_CHUNK,) and file["probes/top"].chunks == (ROWS_PER_CHUNK, 2)
+        assert file["snapshots/block/x"].chunks == (1, sim.point_count, 2)
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 

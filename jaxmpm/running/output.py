@@ -54,9 +54,8 @@ ROWS_PER_CHUNK = 1024       # rows of a probe history stored together (a snapsho
 
 
 def _growing(group, name, first_rows, compress=False):
-    """A dataset holding `first_rows`, resizable along its first axis: a compressed snapshot
-    per chunk, or ROWS_PER_CHUNK rows of a history (a chunk a row made a run's every step an
-    HDF5 chunk of its own, written one by one)."""
+    """A dataset holding `first_rows`, resizable along its first axis, in chunks of one
+    compressed snapshot or of ROWS_PER_CHUNK rows of a history."""
     first_rows = np.asarray(first_rows)
     options = dict(compression="gzip", compression_opts=4) if compress else {}
     return group.create_dataset(name, data=first_rows, maxshape=(None, *first_rows.shape[1:]),
