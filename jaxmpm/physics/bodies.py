@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmpm.physics.contact import cross, interface_impulse, interface_normals, safe_norm, unit
+from jaxmpm.physics.contact import apply_interfaces, cross, safe_norm, unit
 
 OUTLINE_RESOLUTION = 1e-9    # of an outline's longest edge: nearer than that, a position counts as on it
 TIED_OPPOSITE = 1e-3         # |sum of the tied edges' normals| below this: opposite faces (mid-plane of a
@@ -230,18 +230,15 @@ def answering_blocks(structure):
     return tuple(block for block in structure.bodies if block.kinematics == "rigid" or block.substeps > 1)
 
 
-def rigid_interfaces(structure):
-    """The interfaces between a rigid (or subcycled) body's field and a free field, as
-    (interface, that body's block)."""
-    rigid = {block.field: block for block in answering_blocks(structure)}
-    found = []
-    for interface in structure.interfaces:
-        if interface.kinematic_first and interface.kinematic_second:
-            continue
-        for side in (interface.first, interface.second):
-            if side in rigid:
-                found.append((interface, rigid[side]))
-    return tuple(found)
+def interfaces_to_answer(structure):
+    """The interfaces, in the step's order, up to the last one between a rigid (or subcycled)
+    body's field and a free field: those whose impulses the body's motion is solved with.
+    The ones before a body's own interfaces count too: a bond between two free fields (a
+    backfill and its foundation) sets the velocities the body's contacts then correct."""
+    answering = {block.field for block in answering_blocks(structure)}
+    touching = [index for index, interface in enumerate(structure.interfaces)
+                if answering & {interface.first, interface.second}]
+    return structure.interfaces[:touching[-1] + 1] if touching else ()
 
 
 class Grid(NamedTuple):
@@ -258,7 +255,9 @@ def rigid_residual(motion, grid, frictions, structure, frames, positions, normal
     """Momentum balance of every rigid body, (3 K,): M (V - V*) - sum J and
     J_c (omega - w*) - sum r x J, with `motion` (3 K,) the bodies' (V_x, V_y, omega) in
     block order, `frames` their RigidStep before the solve and `normals` the contact normal
-    of each of `rigid_interfaces` (None for a bonded one; they do not depend on the motion).
+    of each of `interfaces_to_answer` (None for a bonded one; they do not depend on the
+    motion). The impulses J are those the step applies (`contact.apply_interfaces`, in
+    its order) with the bodies' fields moving at `motion`.
     In axisymmetry only the axial row takes the impulses: the body, a ring, keeps V_r = V*_r
     and omega = w*."""
     blocks = answering_blocks(structure)
@@ -266,14 +265,13 @@ def rigid_residual(motion, grid, frictions, structure, frames, positions, normal
     for index, block in enumerate(blocks):
         arm = positions - frames[block.name].centre
         velocity = velocity.at[block.field].set(motion[3 * index:3 * index + 2] + spin_velocity(motion[3 * index + 2], arm))
-    received = {block.name: jnp.zeros_like(velocity[0]) for block in blocks}
-    for (interface, block), normal in zip(rigid_interfaces(structure), normals):
-        impulse = interface_impulse(interface, grid.mass, velocity, normal, frictions.get(interface.contact), grid.occupied)
-        received[block.name] = received[block.name] + (impulse if interface.first == block.field else -impulse)
+    interfaces = interfaces_to_answer(structure)
+    _, impulses = apply_interfaces(interfaces, grid.mass, velocity, normals, frictions, grid.occupied)
+    received = received_impulses(interfaces, impulses)
     balances = []
     for index, block in enumerate(blocks):
         frame = frames[block.name]
-        impulse = received[block.name]
+        impulse = received.get(block.field, jnp.zeros_like(velocity[0]))
         linear = frame.mass * (motion[3 * index:3 * index + 2] - frame.velocity) - jnp.sum(impulse, axis=(0, 1))
         angular = frame.inertia * (motion[3 * index + 2] - frame.spin) - jnp.sum(cross(positions - frame.centre, impulse))
         if structure.axisymmetric:      # a ring moves along the axis only: no impulse moves it radially or turns it
@@ -283,20 +281,19 @@ def rigid_residual(motion, grid, frictions, structure, frames, positions, normal
     return jnp.concatenate(balances)
 
 
-def solve_rigid_motions(structure, motions, grid, frictions, positions, outlines=None):
+def solve_rigid_motions(structure, motions, grid, frictions, positions, normals=()):
     """Each rigid body's end-of-step velocity and spin, solved with its interfaces' impulses
-    (the module's docstring; `outlines` as `contact.interface_normals` takes them):
-    NEWTON_ITERATIONS Newton steps from the free motion, all but the last on values only; the last one differentiable with its Jacobian held, so that its
-    derivative is -(dR/dq)^-1 dR/dparams, the implicit function theorem's."""
+    (the module's docstring; `normals`: each interface's, `contact.normals_of`):
+    NEWTON_ITERATIONS Newton steps from the free motion, all but the last on values only; the
+    last one differentiable with its Jacobian held, so that its derivative is
+    -(dR/dq)^-1 dR/dparams, the implicit function theorem's."""
     blocks = answering_blocks(structure)
     if not blocks:
         return motions
     frames = {block.name: motions[block.name] for block in blocks}
     solved = jnp.concatenate([jnp.concatenate([frames[b.name].velocity, frames[b.name].spin[None]]) for b in blocks])
-    if rigid_interfaces(structure):
-        normals = tuple(None if interface.contact is None
-                        else interface_normals(interface, grid.mass, grid.mass_gradient, outlines)
-                        for interface, _ in rigid_interfaces(structure))
+    if interfaces_to_answer(structure):
+        normals = tuple(normals[:len(interfaces_to_answer(structure))])
 
         def residual(motion, grid, frictions, frames, normals):
             return rigid_residual(motion, grid, frictions, structure, frames, positions, normals)
@@ -316,20 +313,20 @@ def solve_rigid_motions(structure, motions, grid, frictions, positions, outlines
     return motions
 
 
-def impose_body_motions(params, state, structure, grid, frictions, time_new, predicted=None, outlines=None):
+def impose_body_motions(params, state, structure, grid, frictions, time_new, predicted=None, normals=()):
     """(nodal velocities with each prescribed, rigid and subcycled body's field moving as the
     body, {body: its motion over the step}) from the free fields' trial `grid`: prescribed
     bodies on their path, rigid bodies and subcycled ones (`predicted`: {name: RigidStep of
     its predicted motion, `subcycling.predict`}) solved with their interfaces' impulses
-    (`solve_rigid_motions`, with the contact normals `outlines` give). A scene without such
-    bodies: the trial velocities and {}."""
+    (`solve_rigid_motions`, with each interface's contact normal, `normals`). A scene without
+    such bodies: the trial velocities and {}."""
     predicted = predicted or {}
     if not structure.has_kinematic_bodies and not predicted:
         return grid.velocity, {}
     positions = node_positions(structure.layout, state.particles.x.dtype)
     motions = {**free_motions(params, state, structure, time_new), **predicted}
     motions = jax.named_call(solve_rigid_motions, name="rigid_bodies")(structure, motions, grid, frictions, positions,
-                                                                        outlines)
+                                                                        normals)
     velocity = impose_kinematic_fields(grid.velocity, structure, motions, positions)
     for block in structure.bodies:
         if block.name in predicted:
@@ -337,10 +334,10 @@ def impose_body_motions(params, state, structure, grid, frictions, time_new, pre
     return velocity, motions
 
 
-def received_impulses(structure, impulses):
-    """{field: (nx, ny, 2) total impulse the field received from all interfaces}."""
+def received_impulses(interfaces, impulses):
+    """{field: (nx, ny, 2) total impulse the field received from the `interfaces`}."""
     received = {}
-    for interface, impulse in zip(structure.interfaces, impulses):
+    for interface, impulse in zip(interfaces, impulses):
         received[interface.first] = received.get(interface.first, 0.0) + impulse
         received[interface.second] = received.get(interface.second, 0.0) - impulse
     return received
@@ -354,7 +351,7 @@ def move_kinematic_bodies(state, start, structure, motions, impulses, gravity):
     (2,) taken off})."""
     particles = state.particles
     x, v, rigid = particles.x, particles.v, dict(state.rigid)
-    received = received_impulses(structure, impulses)
+    received = received_impulses(structure.interfaces, impulses)
     reactions = {}
     for block in kinematic_blocks(structure):
         moved_x, moved_v, reaction, motion = KINDS[block.kinematics].moved(

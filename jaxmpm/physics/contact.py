@@ -221,22 +221,24 @@ def part_share(interface, mass, occupied):
     return jnp.where(total > 0.0, own / jnp.where(total > 0.0, total, 1.0), 1.0)
 
 
-def resolve_interfaces(interfaces, mass, velocity, mass_gradient, frictions, occupied, outline_normals=None):
-    """Apply every interface's impulse in turn to the free fields' velocities (`outline_normals`:
-    see `interface_normals`).
+def normals_of(interfaces, mass, mass_gradient, outline_normals=None):
+    """The unit normal (nx, ny, 2) of each interface at the nodes (`interface_normals`), None
+    for a bonded one. They read no velocity, so a step takes them once."""
+    return tuple(None if interface.contact is None else interface_normals(interface, mass, mass_gradient, outline_normals)
+                 for interface in interfaces)
 
-    Returns (velocity (F, nx, ny, 2), impulses, normals): impulses[k] (nx, ny, 2) is the impulse
-    on the `first` field of interfaces[k] (its `second` field received minus it), normals[k] the
-    unit normals from first into second it used (None for a bonded interface). Prescribed and
-    rigid fields keep their velocities; what they receive is read from the impulses."""
-    impulses, normals = [], []
+
+def apply_interfaces(interfaces, mass, velocity, normals, frictions, occupied):
+    """Apply every interface's impulse in turn to the free fields' velocities, each from the
+    velocities the ones before it left (`normals` from `normals_of`).
+
+    Returns (velocity (F, nx, ny, 2), impulses): impulses[k] (nx, ny, 2) is the impulse on the
+    `first` field of interfaces[k] (its `second` field received minus it). Prescribed and rigid
+    fields keep their velocities; what they receive is read from the impulses."""
+    impulses = []
     safe_mass = jnp.where(occupied, mass, 1.0)[..., None]
-    for interface in interfaces:
-        normal = None
-        if interface.contact is not None:
-            normal = interface_normals(interface, mass, mass_gradient, outline_normals)
-        friction = frictions.get(interface.contact)
-        impulse = interface_impulse(interface, mass, velocity, normal, friction, occupied)
+    for interface, normal in zip(interfaces, normals):
+        impulse = interface_impulse(interface, mass, velocity, normal, frictions.get(interface.contact), occupied)
         if interface.shared_with:
             impulse = impulse * part_share(interface, mass, occupied)[..., None]
         if not interface.kinematic_first:
@@ -244,5 +246,11 @@ def resolve_interfaces(interfaces, mass, velocity, mass_gradient, frictions, occ
         if not interface.kinematic_second:
             velocity = velocity.at[interface.second].add(-impulse / safe_mass[interface.second])
         impulses.append(impulse)
-        normals.append(normal)
+    return velocity, impulses
+
+
+def resolve_interfaces(interfaces, mass, velocity, mass_gradient, frictions, occupied, outline_normals=None):
+    """`apply_interfaces` with the normals of `normals_of`: (velocity, impulses, normals)."""
+    normals = normals_of(interfaces, mass, mass_gradient, outline_normals)
+    velocity, impulses = apply_interfaces(interfaces, mass, velocity, normals, frictions, occupied)
     return velocity, impulses, normals

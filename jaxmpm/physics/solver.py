@@ -67,7 +67,7 @@ from jaxmpm.physics.bodies import (
     Grid, impose_body_motions, keep_points_outside, move_kinematic_bodies, node_positions, normal_cones,
     prescribed_outline_normals, received_impulses,
 )
-from jaxmpm.physics.contact import Interface, resolve_interfaces
+from jaxmpm.physics.contact import Interface, apply_interfaces, normals_of
 from jaxmpm.physics.subcycling import alone, correct, predict, put_back, subcycled_blocks
 from jaxmpm.physics.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, per_unit_mass, scatter_to_nodes,
@@ -548,18 +548,17 @@ def make_step(structure: Structure):
         time_new = (state.step + 1).astype(particles.x.dtype) * dt
         prediction = predict(steps_alone, params, particles, structure, subcycled)
         grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, nodes.mass > floor)
-        outlines = contact_outlines(structure, state)
+        normals = normals_of(structure.interfaces, nodes.mass, nodes.mass_gradient, contact_outlines(structure, state))
         velocity_new, motions = impose_body_motions(params, state, structure, grid, frictions, time_new,
-                                                    prediction.motions, outlines)
-        impulses, normals = [], []
+                                                    prediction.motions, normals)
+        impulses = []
         if structure.interfaces:
-            velocity_new, impulses, normals = jax.named_call(resolve_interfaces, name="contact")(
-                structure.interfaces, nodes.mass, velocity_new, nodes.mass_gradient, frictions, nodes.mass > floor,
-                outlines
+            velocity_new, impulses = jax.named_call(apply_interfaces, name="contact")(
+                structure.interfaces, nodes.mass, velocity_new, normals, frictions, nodes.mass > floor
             )
             velocity_new = constrain(velocity_new)
         ended = correct(steps_alone, params, structure, subcycled, prediction, motions,
-                        received_impulses(structure, impulses), nodes.mass, floor)
+                        received_impulses(structure.interfaces, impulses), nodes.mass, floor)
         start = particles.x
         particles = jax.named_call(grid_to_particles, name="grid_to_particles")(
             particles, stencil, velocity_old, velocity_new, field, memory, dt, layout, structure.derivatives

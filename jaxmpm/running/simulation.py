@@ -27,7 +27,7 @@ from jaxmpm.physics.bodies import convex_outline, joined_edges
 from jaxmpm.running.budget import check_memory
 from jaxmpm.errors import SceneError
 from jaxmpm.physics.grid import GridLayout
-from jaxmpm.physics.initial_stress import depth_below_top, geostatic_stress, jaky_k0
+from jaxmpm.physics.initial_stress import depth_below_top, geostatic_stress, jaky_k0, thickness_above
 from jaxmpm.physics.contact import Interface
 from jaxmpm.kernels.xla_options import compiler_options, jit_with_options
 from jaxmpm.keys import is_concrete
@@ -388,7 +388,7 @@ class Simulation:
                 velocity = params["bodies"][block.name]["velocity"]
                 velocity = velocity if block.times is None else velocity[0]
             velocities.append(jnp.broadcast_to(velocity, (size, 2)))
-            stresses.append(self.body_initial_stress(body, block, material, params["scene"]["gravity"]))
+            stresses.append(self.body_initial_stress(body, block, params))
             histories.append(block.law.init_state(size, dtype))
             if block.kinematics == "rigid":
                 zero = jnp.zeros((), dtype)
@@ -405,17 +405,28 @@ class Simulation:
         )
         return State(particles=particles, rigid=rigid, **counters_at_start())
 
-    def body_initial_stress(self, body, block, material, gravity):
+    def body_initial_stress(self, body, block, params):
         """(n_body, 4) initial stress of one body (`Particles.stress_voigt`): zero, or
-        geostatic from its material's params and the gravity (2,) of params["scene"]."""
+        geostatic under the weight of the body above each point and of the other geostatic
+        bodies stacked on it (`initial_stress`), from the materials' params and the gravity
+        (2,) of params["scene"]."""
         size = block.stop - block.start
         if body.initial_stress is None:
             return jnp.zeros((size, 4), self.dtype)
+        material = params["materials"][block.material_name]
         k0 = body.initial_stress.k0
         k0 = jaky_k0(material["friction_angle"]) if k0 == "jaky" else k0
         spacing = self.scene.grid.cell / self.scene.numerics.ppc
-        depth = depth_below_top(self.seeds.positions[block.points], spacing, self.scene.grid.origin[0])
-        return geostatic_stress(jnp.asarray(depth, self.dtype), material["density"], gravity[1], k0)
+        origin = self.scene.grid.origin
+        positions = self.seeds.positions[block.points]
+        overburden = material["density"] * jnp.asarray(depth_below_top(positions, spacing, origin), self.dtype)
+        for other_block, other in zip(self.structure.bodies, self.scene.bodies):
+            if other is not body and other.initial_stress is not None:
+                thickness = thickness_above(positions, self.seeds.positions[other_block.points], spacing, origin)
+                if thickness.any():
+                    density = params["materials"][other_block.material_name]["density"]
+                    overburden = overburden + density * jnp.asarray(thickness, self.dtype)
+        return geostatic_stress(overburden, params["scene"]["gravity"][1], k0)
 
     # ------------------------------------------------------------------ differentiable
 
