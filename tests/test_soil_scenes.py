@@ -144,6 +144,28 @@ def test_geostatic_depth_follows_a_sloping_surface():
     np.testing.assert_array_less(np.abs(depth - ((0.31 - x) - y)), 0.5 * spacing + 1e-12)
 
 
+def test_geostatic_stress_carries_the_bodies_stacked_above():
+    # A 0.2 m layer (1800 kg/m^3) under a 0.15 m layer of another sand (1500 kg/m^3) on its
+    # right half, both geostatic: sigma_yy = -g (1500 t + 1800 d) below the upper layer, with
+    # t = 0.15 m its thickness and d the depth in the lower layer (its own weight, d measured
+    # as in the test above); the left half, with nothing above, carries its own weight only.
+    text = LAYER.replace(
+        'region = { rectangle = [[0.0, 0.0], [1.0, 0.5]] }',
+        'region = { rectangle = [[0.0, 0.0], [1.0, 0.2]] }\ninitial_stress = { geostatic = { k0 = 0.5 } }\n\n'
+        '[materials.light]\nmodel = "drucker_prager"\ndensity = 1500.0\nyoung = 2.0e7\npoisson = 0.3\n'
+        'friction_angle = 30.0\n\n[[bodies]]\nname = "cover"\nmaterial = "light"\n'
+        'region = { rectangle = [[0.5, 0.2], [1.0, 0.35]] }\ninitial_stress = { geostatic = { k0 = 0.5 } }',
+    )
+    sim = jaxmpm.Simulation(jaxmpm.Scene.from_toml(text))
+    particles = sim.initial_state().particles
+    lower = sim.structure.bodies[0].points
+    x, y = np.asarray(particles.x[lower]).T
+    vertical = np.asarray(particles.stress[lower, 1, 1])
+    covered = np.where(x > 0.5, 1500.0 * 0.15, 0.0)
+    np.testing.assert_allclose(vertical, -9.81 * (covered + 1800.0 * (0.2 - y)), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(particles.stress[lower, 0, 0]), 0.5 * vertical, rtol=1e-12)
+
+
 def layer_with_probe(name, kind):
     """The layer with one probe of `kind` on it, named `name`."""
     return jaxmpm.Simulation(jaxmpm.Scene.from_toml(LAYER + f"""
