@@ -18,9 +18,11 @@ and bonded interfaces): with u_I(V, omega) = V + omega e_z x (x_I - c) at each n
     M (V - V*)         = sum_I J_I(u_I)                      V* = V^n + dt g
     J_c (omega - w*)   = sum_I (x_I - c) x J_I(u_I)          w* = omega^n
 
-where J_I(u) is the impulse the body receives at node I when the free field's trial
-velocity v_I is corrected against a body moving at u (`contact.interface_impulse`: Coulomb
-contact, only where closing; or full no-slip for bonded fields). The free nodes then end the
+where J_I(u) is the impulse the body receives at node I when the free fields' trial
+velocities are corrected by the step's interfaces in their order, the body moving at u
+(`contact.apply_interfaces`: Coulomb contact, only where closing; or full no-slip for bonded
+fields; a bond between two free fields before the body's contacts changes what they meet).
+The free nodes then end the
 step moving exactly as the body does, and the body moves as the impulses it received say:
 no lag and no feedback. The residual is piecewise linear in (V, omega), so Newton's method
 with its exact Jacobian (an active-set method) reaches the solution in a few iterations;

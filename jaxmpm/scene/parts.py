@@ -146,8 +146,9 @@ class Polygon:
 
 @dataclasses.dataclass(frozen=True)
 class Geostatic:
-    """Initial geostatic stress: sigma_v from the depth below the body's top, sigma_h = K0 sigma_v;
-    k0 = "jaky" (1 - sin phi of the body's friction angle) or a number."""
+    """Initial geostatic stress: sigma_v from the depth below the body's top and the weight of
+    other geostatic bodies stacked on it, sigma_h = K0 sigma_v; k0 = "jaky" (1 - sin phi of
+    the body's friction angle) or a number."""
 
     k0: float | str = "jaky"
 

@@ -124,7 +124,7 @@ KINEMATICS_TABLE = Section(
 GEOSTATIC = Section((
     Key("k0", "float", "earth pressure coefficient sigma_h / sigma_v, or 'jaky' for 1 - sin(phi) of the body's "
         "friction angle", default="jaky", low=0.0, words=("jaky",)),
-), "vertical stress sigma_v from the depth below the body's top (its weight), sigma_h = K0 sigma_v")
+), "vertical stress sigma_v from the depth below the body's top (its weight, and that of other geostatic bodies stacked on it), sigma_h = K0 sigma_v")
 
 INITIAL_STRESS = Section((
     Key("geostatic", "table", "a geostatic initial stress", section=GEOSTATIC),
