@@ -440,6 +440,30 @@ def test_a_rigid_plate_pushed_into_a_seam_of_bonded_blocks_keeps_momentum():
     assert float(state.rigid["plate"].velocity[0]) > -0.19     # the blocks did push back
 
 
+def test_a_rigid_plate_moves_by_the_impulses_the_step_gives_it_beside_a_prescribed_one():
+    # A prescribed plate, speeding up, pushes a thin soft block (one cell thick, quadratic B-splines) against
+    # a rigid plate at rest, no gravity: at the block's nodes all three fields have mass, and
+    # the prescribed plate's interface comes first. The rigid plate's momentum must be the sum
+    # of the impulses the step gave it, M V = sum_steps F dt with F the contact-force probe;
+    # the solve met the prescribed field at its grid velocity (its points' velocity of the
+    # step before) instead of its path velocity before, and the two parted.
+    scene = dataclasses.replace(
+        bonded_plate(duration=0.03),
+        bodies=(Body("pusher", "plate", Rectangle((0.25, 0.2), (0.3, 0.4)), kinematics=Kinematics("prescribed", ((0.0, 0.0), (1.0, 0.0)), (0.0, 0.03))),
+                Body("block", "soft", Rectangle((0.3, 0.2), (0.35, 0.4))),
+                Body("plate", "plate", Rectangle((0.35, 0.2), (0.4, 0.4)), kinematics=Kinematics("rigid"))),
+        contacts=(Contact(("block", "pusher"), friction=0.4), Contact(("block", "plate"), friction=0.4)),
+        probes=(Probe("push", "contact_force", pair=("block", "plate")),),
+    )
+    sim = Simulation(scene)
+    assert [interface.contact for interface in sim.structure.interfaces][0] == "block/pusher"
+    probes, state = sim.probes_and_final_state()
+    momentum = 1000.0 * 0.05 * 0.2 * np.asarray(state.rigid["plate"].velocity)
+    received = sim.dt * np.sum(np.asarray(probes["push"]), axis=0)
+    assert momentum[0] > 0.1 * 1000.0 * 0.05 * 0.2 * 0.5      # pushed along
+    np.testing.assert_allclose(momentum, received, rtol=0, atol=1e-10 * abs(momentum[0]))
+
+
 def test_bonded_rigid_plate_gradients_match_finite_differences():
     # Reverse mode through the bonded rigid-body solve (bodies.solve_rigid_motions): the
     # plate's mean displacement over 0.05 s against the block's stiffness and the plate's own

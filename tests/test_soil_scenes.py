@@ -166,6 +166,17 @@ def test_geostatic_stress_carries_the_bodies_stacked_above():
     np.testing.assert_allclose(np.asarray(particles.stress[lower, 0, 0]), 0.5 * vertical, rtol=1e-12)
 
 
+def test_overburden_counts_each_sub_cell_once_and_weighs_no_gap():
+    # thickness_above: a column of points at rows 0, 1, 3 (a gap at row 2) with a copy of the
+    # top point (a multi-device run pads a body so): above row 0 lie two sub-cells, 2 spacings.
+    from jaxmpm.physics.initial_stress import thickness_above
+    spacing = 0.01
+    column = np.array([[0.005, 0.005], [0.005, 0.015], [0.005, 0.035], [0.005, 0.035], [0.015, 0.045]])
+    below = np.array([[0.005, 0.005], [0.005, -0.005], [0.015, 0.005]])
+    np.testing.assert_allclose(thickness_above(below, column, spacing, (0.0, -0.01)),
+                               [2 * spacing, 3 * spacing, spacing])
+
+
 def layer_with_probe(name, kind):
     """The layer with one probe of `kind` on it, named `name`."""
     return jaxmpm.Simulation(jaxmpm.Scene.from_toml(LAYER + f"""

@@ -283,9 +283,9 @@ def rigid_residual(motion, grid, frictions, structure, frames, positions, normal
     return jnp.concatenate(balances)
 
 
-def solve_rigid_motions(structure, motions, grid, frictions, positions, normals=()):
+def solve_rigid_motions(structure, motions, grid, frictions, positions, normals):
     """Each rigid body's end-of-step velocity and spin, solved with its interfaces' impulses
-    (the module's docstring; `normals`: each interface's, `contact.normals_of`):
+    (the module's docstring; `normals`: each of structure.interfaces', `contact.normals_of`):
     NEWTON_ITERATIONS Newton steps from the free motion, all but the last on values only; the
     last one differentiable with its Jacobian held, so that its derivative is
     -(dR/dq)^-1 dR/dparams, the implicit function theorem's."""
@@ -295,6 +295,7 @@ def solve_rigid_motions(structure, motions, grid, frictions, positions, normals=
     frames = {block.name: motions[block.name] for block in blocks}
     solved = jnp.concatenate([jnp.concatenate([frames[b.name].velocity, frames[b.name].spin[None]]) for b in blocks])
     if interfaces_to_answer(structure):
+        assert len(normals) == len(structure.interfaces), "a normal (or None) for every interface"
         normals = tuple(normals[:len(interfaces_to_answer(structure))])
 
         def residual(motion, grid, frictions, frames, normals):
@@ -315,20 +316,22 @@ def solve_rigid_motions(structure, motions, grid, frictions, positions, normals=
     return motions
 
 
-def impose_body_motions(params, state, structure, grid, frictions, time_new, predicted=None, normals=()):
+def impose_body_motions(params, state, structure, grid, frictions, time_new, normals, predicted=None):
     """(nodal velocities with each prescribed, rigid and subcycled body's field moving as the
     body, {body: its motion over the step}) from the free fields' trial `grid`: prescribed
-    bodies on their path, rigid bodies and subcycled ones (`predicted`: {name: RigidStep of
-    its predicted motion, `subcycling.predict`}) solved with their interfaces' impulses
-    (`solve_rigid_motions`, with each interface's contact normal, `normals`). A scene without
-    such bodies: the trial velocities and {}."""
+    bodies on their path (set first: the rigid bodies' solve meets them so), rigid bodies and
+    subcycled ones (`predicted`: {name: RigidStep of its predicted motion,
+    `subcycling.predict`}) solved with their interfaces' impulses (`solve_rigid_motions`, with
+    each interface's contact normal, `normals`). A scene without such bodies: the trial
+    velocities and {}."""
     predicted = predicted or {}
     if not structure.has_kinematic_bodies and not predicted:
         return grid.velocity, {}
     positions = node_positions(structure.layout, state.particles.x.dtype)
     motions = {**free_motions(params, state, structure, time_new), **predicted}
-    motions = jax.named_call(solve_rigid_motions, name="rigid_bodies")(structure, motions, grid, frictions, positions,
-                                                                        normals)
+    on_path = grid._replace(velocity=impose_kinematic_fields(grid.velocity, structure, motions, positions))
+    motions = jax.named_call(solve_rigid_motions, name="rigid_bodies")(structure, motions, on_path, frictions,
+                                                                        positions, normals)
     velocity = impose_kinematic_fields(grid.velocity, structure, motions, positions)
     for block in structure.bodies:
         if block.name in predicted:

@@ -237,7 +237,7 @@ def apply_interfaces(interfaces, mass, velocity, normals, frictions, occupied):
     fields keep their velocities; what they receive is read from the impulses."""
     impulses = []
     safe_mass = jnp.where(occupied, mass, 1.0)[..., None]
-    for interface, normal in zip(interfaces, normals):
+    for interface, normal in zip(interfaces, normals, strict=True):
         impulse = interface_impulse(interface, mass, velocity, normal, frictions.get(interface.contact), occupied)
         if interface.shared_with:
             impulse = impulse * part_share(interface, mass, occupied)[..., None]

@@ -1,11 +1,11 @@
 """Initial stress of bodies: the geostatic state.
 
-sigma_yy = g_y (rho d + sum_c rho_c t_c) (compression under gravity g_y < 0): the weight of the
-body above the point, at depth d below the body's top, and of every other geostatic body c
-stacked above it in the same column, of thickness t_c there (a backfill on a foundation);
+sigma_yy = g_y sum_c rho_c t_c (compression under gravity g_y < 0): the weight of the points
+above each point in its lattice column, of its own body and of every other geostatic body
+stacked on it (a backfill on its foundation), t_c the thickness of body c's points there
+(their count times the point spacing; the point's own body counts half a spacing more, the
+upper half of its own sub-cell), so sloping surfaces are followed and a gap weighs nothing;
 sigma_xx = sigma_zz = K0 sigma_yy, no shear; K0 = 1 - sin(phi) (Jaky) or a given number.
-The depth of a point is measured in its own lattice column, from the top of the body's points
-in that column plus half a point spacing, so sloping surfaces are followed.
 """
 
 import jax.numpy as jnp
@@ -18,22 +18,14 @@ def lattice_cells(positions, spacing, origin):
     return np.floor((positions - np.asarray(origin)) / spacing).astype(np.int64).T
 
 
-def depth_below_top(positions, spacing, origin):
-    """(n,) depth [m] of each point below the top of its column of points (same x)."""
-    columns, _ = lattice_cells(positions, spacing, origin)
-    _, inverse = np.unique(columns, return_inverse=True)
-    tops = np.full(inverse.max() + 1, -np.inf)
-    np.maximum.at(tops, inverse, positions[:, 1])
-    return tops[inverse] + 0.5 * spacing - positions[:, 1]
-
-
 def thickness_above(positions, others, spacing, origin):
     """(n,) thickness [m] of the points `others` (m, 2) that lie above each point of `positions`
-    (n, 2) in its lattice column: their count there times the point spacing."""
+    (n, 2) in its lattice column: the number of their sub-cells there times the point spacing
+    (a sub-cell counted once: a multi-device run pads a body with copies of its last point)."""
     column, row = lattice_cells(positions, spacing, origin)
     other_column, other_row = lattice_cells(others, spacing, origin)
     rows = max(row.max(initial=0), other_row.max(initial=0)) + 1
-    keys = np.sort(other_column * rows + other_row)        # sorted by column, then row
+    keys = np.unique(other_column * rows + other_row)        # sorted by column, then row
     column_end = np.searchsorted(keys, (column + 1) * rows, side="left")
     return spacing * (column_end - np.searchsorted(keys, column * rows + row, side="right"))
 

@@ -4,11 +4,12 @@
     nodes     = particles_to_grid            each field's mass, momentum, internal + external
                                              force (and mass gradient, with contact pairs)
     velocity  = update_grid_velocity         local damping, M a = F, edge conditions
-    motions   = solve_rigid_motions          (rigid bodies only) each rigid body's velocity and
-                                             spin, solved with its interfaces' impulses (`bodies`)
-    velocity  = resolve_interfaces           (several fields only) prescribed and rigid
+    motions   = solve_rigid_motions          (rigid and subcycled bodies only) each one's velocity
+                                             and spin, solved with the impulses the next phase
+                                             applies (`bodies`)
+    velocity  = apply_interfaces             (several fields only) prescribed and rigid
                                              fields take their motion; contact and bonding
-                                             impulses between fields (`contact`)
+                                             impulses between fields, in turn (`contact`)
     particles = grid_to_particles            velocity (the points' own, fading, and the grid's),
                                              positions
     state     = move_kinematic_bodies        prescribed points move on their path, rigid
@@ -549,8 +550,8 @@ def make_step(structure: Structure):
         prediction = predict(steps_alone, params, particles, structure, subcycled)
         grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, nodes.mass > floor)
         normals = normals_of(structure.interfaces, nodes.mass, nodes.mass_gradient, contact_outlines(structure, state))
-        velocity_new, motions = impose_body_motions(params, state, structure, grid, frictions, time_new,
-                                                    prediction.motions, normals)
+        velocity_new, motions = impose_body_motions(params, state, structure, grid, frictions, time_new, normals,
+                                                    prediction.motions)
         impulses = []
         if structure.interfaces:
             velocity_new, impulses = jax.named_call(apply_interfaces, name="contact")(

@@ -27,7 +27,7 @@ from jaxmpm.physics.bodies import convex_outline, joined_edges
 from jaxmpm.running.budget import check_memory
 from jaxmpm.errors import SceneError
 from jaxmpm.physics.grid import GridLayout
-from jaxmpm.physics.initial_stress import depth_below_top, geostatic_stress, jaky_k0, thickness_above
+from jaxmpm.physics.initial_stress import geostatic_stress, jaky_k0, thickness_above
 from jaxmpm.physics.contact import Interface
 from jaxmpm.kernels.xla_options import compiler_options, jit_with_options
 from jaxmpm.keys import is_concrete
@@ -407,9 +407,9 @@ class Simulation:
 
     def body_initial_stress(self, body, block, params):
         """(n_body, 4) initial stress of one body (`Particles.stress_voigt`): zero, or
-        geostatic under the weight of the body above each point and of the other geostatic
-        bodies stacked on it (`initial_stress`), from the materials' params and the gravity
-        (2,) of params["scene"]."""
+        geostatic under the weight of the geostatic bodies' points above each point, its own
+        body's and those stacked on it (`initial_stress`), from the materials' params and the
+        gravity (2,) of params["scene"]."""
         size = block.stop - block.start
         if body.initial_stress is None:
             return jnp.zeros((size, 4), self.dtype)
@@ -419,9 +419,9 @@ class Simulation:
         spacing = self.scene.grid.cell / self.scene.numerics.ppc
         origin = self.scene.grid.origin
         positions = self.seeds.positions[block.points]
-        overburden = material["density"] * jnp.asarray(depth_below_top(positions, spacing, origin), self.dtype)
+        overburden = material["density"] * jnp.full(len(positions), 0.5 * spacing, self.dtype)
         for other_block, other in zip(self.structure.bodies, self.scene.bodies):
-            if other is not body and other.initial_stress is not None:
+            if other.initial_stress is not None:
                 thickness = thickness_above(positions, self.seeds.positions[other_block.points], spacing, origin)
                 if thickness.any():
                     density = params["materials"][other_block.material_name]["density"]
