@@ -12,7 +12,7 @@
   is the truth inside the reported 2 sigma?
 - rates: the footing pushed at one and at two rates (examples/calibrate_rates_scene.toml):
   the correlation of fluidity and exponent, and the recovered values;
-- wall: a rigid retaining wall pushed over by viscoplastic backfill (examples/
+- wall: a rigid retaining wall released against a viscoplastic backfill (examples/
   calibrate_wall_scene.toml), fitted to the wall top's displacement and the thrust, noise-free
   and with 2 % noise; wall_variants: the same with L-BFGS and with linear shape functions;
 - pile: a pile pushed into viscoplastic sand at one and at two rates (examples/
@@ -189,7 +189,7 @@ def wall_observations(sim, noise, seed=0, every=0.01):
 
 
 def wall(table):
-    section(table, "Retaining wall pushed over by viscoplastic backfill: wall-top displacement and thrust")
+    section(table, "Retaining wall twin: wall-top displacement and thrust")
     sim = jaxmpm.Simulation(jaxmpm.load_scene(WALL_SCENE))
     table(f"{sim.point_count} points, {sim.steps} steps.")
     table()
