@@ -4,7 +4,7 @@ A `Channel` is one probe's measured history: times (M,) [s], values (M, c) for t
 components it covers (e.g. only the vertical displacement, component 1), an optional noise
 standard deviation per component (c,), and an optional averaging window [s]: a measurement
 that is the mean of the probe over the window centred on each time (a load cell's bandwidth;
-the contact force of a rigid body alternates from step to step about its mean). Sources: numpy
+a contact force rings with the soil's waves from step to step). Sources: numpy
 arrays, CSV files, HDF5 files (including a jaxmpm output file).
 
 CSV layout: a header `time, top[0], top[1], thrust[0]`; each column after `time` is one
