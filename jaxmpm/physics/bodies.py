@@ -22,11 +22,11 @@ where J_I(u) is the impulse the body receives at node I when the free fields' tr
 velocities are corrected by the step's interfaces in their order, the body moving at u
 (`contact.apply_interfaces`: Coulomb contact, only where closing; or full no-slip for bonded
 fields; a bond between two free fields before the body's contacts changes what they meet).
-The free nodes then end the
-step moving exactly as the body does, and the body moves as the impulses it received say:
-no lag and no feedback. The residual is piecewise linear in (V, omega), so Newton's method
-with its exact Jacobian (an active-set method) reaches the solution in a few iterations;
-its derivative is that of the implicit function theorem, taken by one last Newton step.
+The free nodes then end the step moving exactly as the body does, and the body moves as the
+impulses it received say: no lag and no feedback. The residual is piecewise linear in
+(V, omega), so Newton's method with its exact Jacobian (an active-set method) reaches the
+solution in a few iterations; its derivative is that of the implicit function theorem, taken
+by one last Newton step.
 
 The earlier scheme predicted the body's velocity from the last step's contact force and
 corrected it after the contact: a lagged explicit coupling whose error is first order in dt
