@@ -37,6 +37,14 @@ def accepts_xla_flag(flag):
     return done.returncode == 0
 
 
+def use_quick_compiling():
+    """Add QUICK_COMPILING to XLA_FLAGS (before JAX's backend starts) unless XLA_FLAGS already
+    names the option or this jaxlib refuses it."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_cpu_use_fusion_emitters" not in flags and accepts_xla_flag(QUICK_COMPILING):
+        os.environ["XLA_FLAGS"] = f"{flags} {QUICK_COMPILING}".strip()
+
+
 def pytest_configure(config):
     """The first process of the session (the xdist controller, or the only process) makes the
     cache directory and chooses the compiler flag; workers inherit both through the
@@ -44,9 +52,7 @@ def pytest_configure(config):
     if SESSION_CACHE not in os.environ:
         os.environ[SESSION_CACHE] = tempfile.mkdtemp(prefix="jaxmpm-test-cache-")
         config._jaxmpm_owns_cache = True
-        flags = os.environ.get("XLA_FLAGS", "")
-        if "xla_cpu_use_fusion_emitters" not in flags and accepts_xla_flag(QUICK_COMPILING):
-            os.environ["XLA_FLAGS"] = f"{flags} {QUICK_COMPILING}".strip()
+        use_quick_compiling()
     os.environ["JAXMPM_CACHE_DIR"] = os.environ[SESSION_CACHE]
     jax.config.update("jax_compilation_cache_dir", os.environ[SESSION_CACHE])
 

@@ -294,9 +294,10 @@ def solve_rigid_motions(structure, motions, grid, frictions, positions, normals)
         return motions
     frames = {block.name: motions[block.name] for block in blocks}
     solved = jnp.concatenate([jnp.concatenate([frames[b.name].velocity, frames[b.name].spin[None]]) for b in blocks])
-    if interfaces_to_answer(structure):
+    answered = interfaces_to_answer(structure)
+    if answered:
         assert len(normals) == len(structure.interfaces), "a normal (or None) for every interface"
-        normals = tuple(normals[:len(interfaces_to_answer(structure))])
+        normals = tuple(normals[:len(answered)])
 
         def residual(motion, grid, frictions, frames, normals):
             return rigid_residual(motion, grid, frictions, structure, frames, positions, normals)

@@ -10,7 +10,6 @@ steps) has velocities that are round-off alone, which another compilation does n
 """
 
 import dataclasses
-import os
 import sys
 from pathlib import Path
 
@@ -23,11 +22,9 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 if __name__ == "__main__":
-    from tests.conftest import QUICK_COMPILING, accepts_xla_flag
+    from tests.conftest import use_quick_compiling
 
-    flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_use_fusion_emitters" not in flags and accepts_xla_flag(QUICK_COMPILING):
-        os.environ["XLA_FLAGS"] = f"{flags} {QUICK_COMPILING}".strip()
+    use_quick_compiling()
 STEPS = 40
 OUTPUT = Path(__file__).with_name("examples.npz")
 
