@@ -1,6 +1,6 @@
 """The numerical error of a calibration, measured on the wall twin: docs/calibration.md's table.
 
-    python benchmarks/calibration_numerical_error.py [--relaxation 0 10] [--refinement dt|relaxation|stress]
+    python benchmarks/calibration_numerical_error.py [--relaxation 0 10] [--refinement dt|cell|relaxation|stress]
                                                      [--stress-substeps K]
 
 The twin's observations (wall-top displacement, thrust; examples/calibrate_wall_scene.toml)
@@ -12,7 +12,8 @@ values would do at the refined numerics) should be minus that bias. A second fit
 observations with 2 % noise gives the noise standard errors to compare with. With
 `--refinement relaxation` the observations are made at the relaxation doubled instead (the
 time step as the fit's), and the check is `numerical_check=("relaxation",)`; with
-`--refinement stress` at the stress substeps doubled (`numerical_check=("stress",)`).
+`--refinement stress` at the stress substeps doubled (`numerical_check=("stress",)`); with
+`--refinement cell` at half the cell (and the step its cfl gives there).
 `--stress-substeps K` sets the fit's own substeps (default 1). A study, not a test: about
 10 minutes per relaxation on 2 cores at one substep.
 """
@@ -43,7 +44,8 @@ def study(relaxation, refinement="dt", stress_substeps=1):
              .with_value("numerics.stress_substeps", stress_substeps))
     coarse = jaxmpm.Simulation(scene)
     fine = jaxmpm.Simulation(refined_scene(scene, refinement))
-    made = {"dt": f"{fine.steps} steps at cfl {scene.cfl / 2:g}", "relaxation": f"relaxation {2 * relaxation:g}",
+    made = {"dt": f"{fine.steps} steps at cfl {scene.cfl / 2:g}", "cell": f"cell {fine.scene.grid.cell:g} m",
+            "relaxation": f"relaxation {2 * relaxation:g}",
             "stress": f"{2 * stress_substeps} stress substeps"}[refinement]
     print(f"\n### relaxation = {relaxation:g}, {stress_substeps} stress substep(s): {coarse.point_count} points, "
           f"{coarse.steps} steps at cfl {scene.cfl:g} (observations made at {made})\n")
@@ -65,7 +67,7 @@ def study(relaxation, refinement="dt", stress_substeps=1):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--relaxation", type=float, nargs="+", default=[0.0, 10.0])
-    parser.add_argument("--refinement", choices=("dt", "relaxation", "stress"), default="dt",
+    parser.add_argument("--refinement", choices=("dt", "cell", "relaxation", "stress"), default="dt",
                         help="what the observations are made finer in (default: dt)")
     parser.add_argument("--stress-substeps", type=int, default=1, help="the fit's numerics.stress_substeps")
     arguments = parser.parse_args()
