@@ -437,10 +437,14 @@ def test_a_rounded_outline_turns_its_normal_continuously_round_a_corner():
     # angle, 90 degrees; rounded, the normal turns in steps bounded by the path's spacing.
     # Faces keep their own normal; corners next to an edge that is no surface (a pile's side on
     # the axis) stay sharp. Geometry, exact to round-off.
+    import jax
     import jax.numpy as jnp
 
-    from jaxmpm.physics.bodies import corner_radius, outline_distances, rounded_outline
+    from jaxmpm.physics import bodies
+    from jaxmpm.physics.bodies import corner_radius
 
+    outline_distances = jax.jit(bodies.outline_distances)          # compiled once per shape, not run op by op
+    rounded_outline = jax.jit(bodies.rounded_outline)
     corners = jnp.asarray([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
     radius = 0.25
     rounded = rounded_outline(corners, None, radius)
@@ -481,15 +485,14 @@ def test_a_rounded_outline_turns_its_normal_continuously_round_a_corner():
 
     # Gradients with respect to the corners (a prescribed velocity moves them) are finite on
     # the rounded corner, on a face and on the moved-in outline itself.
-    import jax
-
     def spread(shift, position):
         moved = corners + shift
         normal = outline_distances(rounded_outline(moved, None, corner_radius(moved, 1.0, 1.0)), position)[1]
         return jnp.sum(normal * jnp.asarray([0.3, 0.7]))
 
+    gradient_of = jax.jit(jax.grad(spread))
     for position in ([1.0, 0.0], [0.5, 0.0], [0.75, 0.25], [1.2, -0.2]):
-        assert np.all(np.isfinite(np.asarray(jax.grad(spread)(jnp.zeros(2), jnp.asarray(position)))))
+        assert np.all(np.isfinite(np.asarray(gradient_of(jnp.zeros(2), jnp.asarray(position)))))
 
 
 def test_numerics_corner_radius_sets_the_rounding_and_zero_keeps_the_corners_sharp():
