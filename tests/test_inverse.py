@@ -430,12 +430,37 @@ def test_a_fits_summary_names_every_refinement_it_checked():
 
     fit = SimpleNamespace(names=("sand.friction_angle", "sand.fluidity"), stderr={"sand.friction_angle": 0.5,
                                                                                   "sand.fluidity": 0.1},
+                          params={"sand.friction_angle": 30.0, "sand.fluidity": 5.0},
                           numerical_shifts={refinement: np.array([1.0, 0.01]) for refinement in REFINEMENTS})
     lines = Fit.numerical_error_lines(fit)
     assert len(lines) == len(REFINEMENTS)
     for line, refinement in zip(lines, REFINEMENTS):
         assert f"numerical error ({REFINEMENT_LABELS[refinement]}): sand.friction_angle +1 (2 se)" in line
         assert line.endswith("the numerics dominate the noise")
+
+
+def test_a_shift_beyond_one_gauss_newton_step_asks_for_a_fit_at_the_refined_numerics():
+    # The wall twin fitted at its cell to data made at half of it (docs/calibration.md,
+    # 2026-12-07): biased by -4.18 deg, -2.75 1/s and -0.53, where the one-step shift said
+    # +34.2 deg, -53.6 1/s and -19.1, each over half its value. Such a shift must not be read
+    # as the bias; a shift within half of every value (the time step's, -0.29 deg) reads alone.
+    from types import SimpleNamespace
+
+    from inverse.fit import Fit
+
+    names = ("sand.friction_angle", "sand.fluidity", "sand.exponent")
+    fitted = {"sand.friction_angle": 25.82, "sand.fluidity": 2.25, "sand.exponent": 1.474}
+    stderr = {"sand.friction_angle": 0.548, "sand.fluidity": 1.77, "sand.exponent": 0.531}
+    far = SimpleNamespace(names=names, params=fitted, stderr=stderr,
+                          numerical_shifts={"cell": np.array([34.2, -53.6, -19.1])})
+    line, = Fit.numerical_error_lines(far)
+    assert line.endswith("the shift is over half the value of sand.friction_angle, sand.fluidity, sand.exponent, "
+                         "beyond what one Gauss-Newton step can say: fit again at the refined numerics"), line
+    near = SimpleNamespace(names=names, params={"sand.friction_angle": 30.30, "sand.fluidity": 6.58,
+                                                "sand.exponent": 2.077},
+                           stderr=stderr, numerical_shifts={"dt": np.array([-0.29, -1.85, -0.079])})
+    line, = Fit.numerical_error_lines(near)
+    assert line.endswith("; the numerics dominate the noise") and "one Gauss-Newton step" not in line, line
 
 
 def test_the_numerical_check_predicts_the_bias_of_a_coarse_fit():
