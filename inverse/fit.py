@@ -22,10 +22,9 @@ from inverse.experiments import experiment_bases
 from jaxmpm.errors import SimulationError
 from jaxmpm.running.refinement import REFINEMENT_LABELS
 from jaxmpm.running.runner import describe_failure
-
-BEYOND_ONE_STEP = 0.5   # a numerical shift over this fraction of a fitted value: fit again, not read the step
 from jaxmpm.running.tracing import collector_paused
 
+BEYOND_ONE_STEP = 0.5   # a numerical shift over this fraction of a fitted value: fit again, not read the step
 
 
 def gauss_newton(residuals, values, noise_known, linearization=None):

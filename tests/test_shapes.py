@@ -62,7 +62,6 @@ def test_partition_of_unity_and_linear_completeness_up_to_the_edges(shape, ppc):
 def test_gradients_are_the_derivatives_of_the_weights(shape):
     layout = GridLayout((0.0, 0.0), 0.1, (10, 8), shape, 2)
     points = random_points(200, (1.0, 0.8), seed=1)[8:]       # away from the kinks of the edges
-    base = layout.stencil(points).base
 
     def weights(x):           # the stencil of one point, its base node held fixed
         stencil = layout.stencil(x[None])
@@ -72,7 +71,6 @@ def test_gradients_are_the_derivatives_of_the_weights(shape):
     checked = points[:40]
     jacobians = jax.jit(jax.vmap(jax.jacfwd(weights)))(checked)           # (40, s, s, 2), point by point
     stencil = layout.stencil(checked)
-    assert np.array_equal(stencil.base, base[:40])
     np.testing.assert_allclose(jnp.stack(stencil.gradients, axis=-1), jacobians, atol=1e-12)
 
 
