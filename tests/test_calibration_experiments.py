@@ -13,7 +13,6 @@ import functools
 import sys
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -199,13 +198,14 @@ def test_two_rates_separate_fluidity_from_exponent():
     fit = {"sand.fluidity": (0.1, 100.0), "sand.exponent": (1.0, 5.0)}
     truth = jnp.array([5.0, 2.0])
     # The weighted residuals of both rates, [slow; fast], and their Jacobian come from one
-    # forward-mode run of the two experiments together; the fast rate alone is its rows.
+    # forward-mode run of the two experiments together (the residuals are its primal: no
+    # second program compiled for them); the fast rate alone is its rows.
     experiments = experiments_from(rates.experiments(sim, 0.02), None)
     space = inverse.ParameterSpace([e.sim.params for e in experiments], fit)
     groups = group_experiments(experiments, space)
     data, bases = problem_arguments(experiments, groups)
     residuals = functools.partial(problem_residuals(groups), data=data, bases=bases)
-    both = (residuals(truth), jax.jacfwd(residuals)(truth))
+    both = levenberg_marquardt.residuals_and_jacobian(residuals, truth)
     fast = slice(experiments[0].observations.count, None)
     correlations, errors = [], []
     for r, jacobian in ((both[0][fast], both[1][fast]), both):
