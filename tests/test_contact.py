@@ -593,19 +593,53 @@ def test_a_walls_flat_back_face_carries_no_more_friction_than_coulomb_allows(kin
         assert abs(mean[1] / mean[0]) <= 1.02 * (mu + tilt) / (1.0 - mu * tilt), (end, mean)
 
 
-def test_a_subcycled_wall_reads_its_faces():
+def reverse_mode_of_probes_against_central_differences(sim, reduce, cases, rel):
+    """tests/scenes.py's check for the loss reduce(sim.probes(params)), its central differences
+    (relative step 1e-6) run by `sim.probes` itself: the program that reads the scene's probes
+    is compiled once for the test's own reads and the differences, not again as a jit of the
+    loss. `reduce` takes the probes as JAX arrays (traced) or NumPy arrays (the differences)."""
+    params = sim.cast(sim.params)
+    gradient = jax.jit(jax.grad(lambda values: reduce(sim.probes(values))))(params)
+    assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree_util.tree_leaves(gradient))
+    for name, value, path in cases:
+        derivative = gradient
+        for key in path:
+            derivative = derivative[key]
+        step = 1e-6 * value
+        moved = (with_values(params, {name: jnp.asarray(value + sign * step)}) for sign in (1, -1))
+        above, below = (float(reduce(jax.tree_util.tree_map(np.asarray, sim.probes(values)))) for values in moved)
+        reference = (above - below) / (2 * step)
+        assert float(derivative) != 0.0
+        assert float(derivative) == pytest.approx(reference, rel=rel), name
+
+
+def test_a_subcycled_wall_reads_its_faces_and_its_gradients_match_finite_differences():
     # A subcycled body steps alone between the scene's steps (physics/subcycling.py), with no
     # contact of its own: the faces are read in the scene's step. Before its lone step dropped
     # them, a face probe on a subcycled wall failed while tracing.
+    # Reverse mode through the subcycled wall's two passes of substeps and the contact solve it
+    # starts from: the wall top's mean displacement over a short release against the wall's
+    # stiffness (read only inside the substeps), its density and the wall friction, central
+    # differences with relative step 1e-6. One scene for both (the face probes only read the
+    # run; the loss reads the wall top alone), so the program that runs it is compiled once for
+    # the reads and the differences (two tests: 97 s of CPU, most of it compiling; one: 88 s).
     from tests.test_convergence import small_wall
 
     scene = small_wall("free", young=30.0e9, substeps="auto", duration=0.02)
     faces = tuple(Probe(name, "contact_force", pair=("sand", "wall"), facing=direction) for name, direction in FACES.items())
-    sim = Simulation(dataclasses.replace(scene, probes=(Probe("whole", "contact_force", pair=("sand", "wall")),) + faces))
+    wall_top = dataclasses.replace(scene.probes[0], name="wall_top")         # "top" names a face here
+    sim = Simulation(dataclasses.replace(scene, probes=(wall_top, Probe("whole", "contact_force", pair=("sand", "wall")))
+                                         + faces))
     force = {name: np.asarray(history) for name, history in sim.probes().items()}
     np.testing.assert_allclose(sum(force[name] for name in FACES), force["whole"], rtol=0,
                                atol=1e-9 * np.abs(force["whole"]).max())
     assert force["back"][-10:, 0].mean() < 0.0                  # the backfill pushes towards -x
+
+    reverse_mode_of_probes_against_central_differences(sim, lambda probes: probes["wall_top"][:, 0].mean(), [
+        ("concrete.young", 30.0e9, ("materials", "concrete", "young")),
+        ("concrete.density", 2400.0, ("materials", "concrete", "density")),
+        ("sand/wall.friction", 0.4, ("contacts", "sand/wall", "friction")),
+    ], rel=1e-4)
 
 
 @pytest.mark.slow

@@ -618,23 +618,8 @@ def test_gradients_through_the_rigid_body_solve_and_the_outline_match_finite_dif
     ], rel=1e-4)
 
 
-def test_gradients_through_a_subcycled_wall_match_finite_differences():
-    # Reverse mode through the subcycled wall's two passes of substeps and the contact solve it
-    # starts from: the wall top's mean displacement over a short release against the wall's
-    # stiffness (read only inside the substeps), its density and the wall friction, central
-    # differences with relative step 1e-6.
-    import jax.numpy as jnp
-
-    sim = Simulation(small_wall("free", young=30.0e9, substeps="auto", duration=0.02))
-
-    def loss(params):
-        return jnp.mean(sim.probes(params)["top"][:, 0])
-
-    reverse_mode_against_central_differences(sim, loss, [
-        ("concrete.young", 30.0e9, ("materials", "concrete", "young")),
-        ("concrete.density", 2400.0, ("materials", "concrete", "density")),
-        ("sand/wall.friction", 0.4, ("contacts", "sand/wall", "friction")),
-    ], rel=1e-4)
+# The subcycled wall's gradients are checked in tests/test_contact.py, on the scene whose face
+# probes it reads there (one forward program for both).
 
 
 def test_gradients_through_points_kept_out_of_a_punch_match_finite_differences():
