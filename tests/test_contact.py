@@ -667,9 +667,9 @@ def test_wall_thrust_falls_from_k0_to_rankine_and_below_with_wall_friction():
     assert abs(thrust[late, 1].mean()) < 0.01 * smooth
     # Rough wall, mu = tan(delta) = 0.4: the settling backfill hangs on the wall (it drags it
     # down, with at most mu times the normal force), which lowers the horizontal thrust, but
-    # not below Coulomb's active value for a fully mobilised delta.
-    sim = Simulation(active_wall(friction=0.4))
-    thrust = np.asarray(sim.probes()["thrust"])
+    # not below Coulomb's active value for a fully mobilised delta. The friction is a
+    # parameter: the same compiled run as the smooth wall's, with mu = 0.4.
+    thrust = np.asarray(sim.probes(with_values(sim.params, {"backfill/wall.friction": 0.4}))["thrust"])
     rough, drag = -thrust[late, 0].mean(), -thrust[late, 1].mean()
     assert coulomb < rough < smooth
     assert 0.0 < drag <= 0.4 * rough
