@@ -537,20 +537,48 @@ def earth_pressures(friction_angle=30.0, wall_friction=0.0, height=0.5, density=
 FACES = {"back": (-1.0, 0.0), "base": (0.0, 1.0), "front": (1.0, 0.0), "top": (0.0, -1.0)}
 
 
-def test_a_contact_force_splits_into_the_faces_of_a_wall():
+def reverse_mode_of_probes_against_central_differences(sim, reduce, cases, rel):
+    """tests/scenes.py's check for the loss reduce(sim.probes(params)), its central differences
+    (relative step 1e-6) run by `sim.probes` itself: the program that reads the scene's probes
+    is compiled once for the test's own reads and the differences, not again as a jit of the
+    loss. `reduce` takes the probes as JAX arrays (traced) or NumPy arrays (the differences)."""
+    params = sim.cast(sim.params)
+    gradient = jax.jit(jax.grad(lambda values: reduce(sim.probes(values))))(params)
+    assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree_util.tree_leaves(gradient))
+    for name, value, path in cases:
+        derivative = gradient
+        for key in path:
+            derivative = derivative[key]
+        step = 1e-6 * value
+        moved = (with_values(params, {name: jnp.asarray(value + sign * step)}) for sign in (1, -1))
+        above, below = (float(reduce(jax.tree_util.tree_map(np.asarray, sim.probes(values)))) for values in moved)
+        reference = (above - below) / (2 * step)
+        assert float(derivative) != 0.0
+        assert float(derivative) == pytest.approx(reference, rel=rel), name
+
+
+def test_a_contact_force_splits_into_the_faces_of_a_wall_and_its_gradients_match_finite_differences():
     # The rigid wall of tests/test_convergence.py (a wall on a sand foundation holding a
     # backfill behind it, released at t = 0) over its first 0.04 s, with the force of the sand
     # on it read whole and by face (`facing`: nodes whose normal, sand into wall, lies within
     # 45 degrees of the direction). The four faces partition the contact; the back carries the
     # backfill's push towards the open side, the base the wall's weight, and the front and top,
     # where there is no sand, nothing.
+    # Reverse mode through the rigid wall's Newton solve (its derivative is the implicit
+    # function theorem's, bodies.solve_rigid_motions), the transfer memory and the points kept
+    # outside its outline: the wall top's mean displacement over a short release (its first
+    # 0.02 s, the first output interval: the same steps as a run of 0.02 s) against the sand's
+    # friction angle and the wall friction, central differences with relative step 1e-6. One
+    # scene for both, so the program that runs it is compiled once for the reads and the
+    # differences.
     from tests.test_convergence import small_wall
 
     scene = small_wall(duration=0.04)
     faces = tuple(Probe(name, "contact_force", pair=("sand", "wall"), facing=direction) for name, direction in FACES.items())
     probes = (Probe("whole", "contact_force", pair=("sand", "wall")),
               Probe("back_read_backwards", "contact_force", pair=("wall", "sand"), facing=(3.0, 0.0))) + faces
-    sim = Simulation(dataclasses.replace(scene, probes=probes))
+    wall_top = dataclasses.replace(scene.probes[0], name="wall_top")         # "top" names a face here
+    sim = Simulation(dataclasses.replace(scene, probes=probes + (wall_top,)))
     force = {name: np.asarray(history) for name, history in sim.probes().items()}
     whole = force["whole"]
     np.testing.assert_allclose(sum(force[name] for name in FACES), whole, rtol=0, atol=1e-9 * np.abs(whole).max())
@@ -563,6 +591,13 @@ def test_a_contact_force_splits_into_the_faces_of_a_wall():
     assert force["base"][settled, 1].mean() > 0.9 * weight
     with pytest.raises(SceneError, match=r"probes\[2\]\.facing = \[0\.0, 0\.0\] has no direction"):
         dataclasses.replace(scene, probes=probes[:2] + (dataclasses.replace(faces[0], facing=(0.0, 0.0)),))
+
+    release = sim.steps_per_output + 1          # t = 0 ... 0.02 s
+    assert sim.time[release - 1] == pytest.approx(0.02)
+    reverse_mode_of_probes_against_central_differences(sim, lambda probes: probes["wall_top"][:release, 0].mean(), [
+        ("sand.friction_angle", 30.0, ("materials", "sand", "friction_angle")),
+        ("sand/wall.friction", 0.4, ("contacts", "sand/wall", "friction")),
+    ], rel=1e-4)
 
 
 @pytest.mark.parametrize("kinematics, substeps", [("rigid", None), ("free", "auto")])
@@ -591,26 +626,6 @@ def test_a_walls_flat_back_face_carries_no_more_friction_than_coulomb_allows(kin
         mean = force[inside].mean(axis=0)
         tilt = math.tan(abs(rotation[inside, 0].mean()))
         assert abs(mean[1] / mean[0]) <= 1.02 * (mu + tilt) / (1.0 - mu * tilt), (end, mean)
-
-
-def reverse_mode_of_probes_against_central_differences(sim, reduce, cases, rel):
-    """tests/scenes.py's check for the loss reduce(sim.probes(params)), its central differences
-    (relative step 1e-6) run by `sim.probes` itself: the program that reads the scene's probes
-    is compiled once for the test's own reads and the differences, not again as a jit of the
-    loss. `reduce` takes the probes as JAX arrays (traced) or NumPy arrays (the differences)."""
-    params = sim.cast(sim.params)
-    gradient = jax.jit(jax.grad(lambda values: reduce(sim.probes(values))))(params)
-    assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree_util.tree_leaves(gradient))
-    for name, value, path in cases:
-        derivative = gradient
-        for key in path:
-            derivative = derivative[key]
-        step = 1e-6 * value
-        moved = (with_values(params, {name: jnp.asarray(value + sign * step)}) for sign in (1, -1))
-        above, below = (float(reduce(jax.tree_util.tree_map(np.asarray, sim.probes(values)))) for values in moved)
-        reference = (above - below) / (2 * step)
-        assert float(derivative) != 0.0
-        assert float(derivative) == pytest.approx(reference, rel=rel), name
 
 
 def test_a_subcycled_wall_reads_its_faces_and_its_gradients_match_finite_differences():

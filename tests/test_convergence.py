@@ -600,26 +600,9 @@ def test_a_rigid_block_slides_down_a_soft_slab_alike_at_half_the_step():
     assert abs(moves[0] - moves[1]) / abs(moves[1]) < 0.01
 
 
-def test_gradients_through_the_rigid_body_solve_and_the_outline_match_finite_differences():
-    # Reverse mode through a rigid wall's Newton solve (its derivative is the implicit function
-    # theorem's, bodies.solve_rigid_motions), the transfer memory and the points kept outside
-    # its outline: the wall top's mean displacement over a short release against the sand's
-    # friction angle and the wall friction, central differences with relative step 1e-6.
-    import jax.numpy as jnp
-
-    sim = Simulation(small_wall(duration=0.02))
-
-    def loss(params):
-        return jnp.mean(sim.probes(params)["top"][:, 0])
-
-    reverse_mode_against_central_differences(sim, loss, [
-        ("sand.friction_angle", 30.0, ("materials", "sand", "friction_angle")),
-        ("sand/wall.friction", 0.4, ("contacts", "sand/wall", "friction")),
-    ], rel=1e-4)
-
-
-# The subcycled wall's gradients are checked in tests/test_contact.py, on the scene whose face
-# probes it reads there (one forward program for both).
+# The gradients through the rigid wall's solve and through the subcycled wall are checked in
+# tests/test_contact.py, each on the scene whose face probes it reads there (one program runs
+# both).
 
 
 def test_gradients_through_points_kept_out_of_a_punch_match_finite_differences():
