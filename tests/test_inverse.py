@@ -117,6 +117,13 @@ def twin_observations(noise=0.0, seed=0, text=TWIN):
     return inverse.Observations.from_arrays(data, sigma=sigma)
 
 
+@functools.cache
+def twin_run():
+    """The twin run forward (jaxmpm.simulate) once, for the tests that need a run's output
+    file (which they write without changing the Result)."""
+    return jaxmpm.simulate(jaxmpm.Scene.from_toml(TWIN), progress=False)
+
+
 OTHER = {"sand.friction_angle": 20.0, "sand.fluidity": 8.0, "sand.exponent": 1.5}
 
 
@@ -289,7 +296,7 @@ def test_observation_files_round_trip(tmp_path):
         np.testing.assert_array_equal(again.channels[name].values, channel.values)
         assert again.channels[name].components == channel.components
     # a jaxmpm output file is an observation file too
-    result = jaxmpm.simulate(jaxmpm.Scene.from_toml(TWIN), progress=False)
+    result = twin_run()
     loaded = inverse.load_observations(result.save(tmp_path / "run.h5"))
     np.testing.assert_array_equal(loaded.channels["footing"].values, result.probes["footing"])
 
@@ -574,7 +581,7 @@ def test_a_fit_file_loads_back_to_the_fit_that_wrote_it_and_plots(tmp_path, caps
     (tmp_path / "cut.h5").write_bytes(path.read_bytes()[: path.stat().st_size // 2])
     with pytest.raises(SceneError, match="is damaged"):
         inverse.Fit.load(tmp_path / "cut.h5")
-    run = jaxmpm.simulate(jaxmpm.Scene.from_toml(TWIN), progress=False).save(tmp_path / "run.h5")
+    run = twin_run().save(tmp_path / "run.h5")
     with pytest.raises(SceneError, match="is the output of a run"):
         inverse.Fit.load(run)
 
