@@ -698,6 +698,15 @@ def small_active_wall(friction=0.3, duration=0.05):
     return active_wall(cell=0.05, friction=friction, duration=duration, speed=0.05, hold=0.001, output_every=duration)
 
 
+def small_active_wall_read_behind():
+    """The small active wall with its back face also read alone (`facing`): the scene of the
+    gradient check below, and of the tests after it that only need some short run of a
+    contact scene, so that one compiled program runs them all."""
+    scene = small_active_wall()
+    back = Probe("back", "contact_force", pair=("backfill", "wall"), facing=(-1.0, 0.0))
+    return dataclasses.replace(scene, probes=scene.probes + (back,))
+
+
 def test_thrust_and_reaction_gradients_match_finite_differences():
     # One reverse-mode gradient (as calibration computes it) of the mean thrust and reaction
     # over a rollout in which the wall starts to leave (closing speed 0, then separation,
@@ -705,17 +714,14 @@ def test_thrust_and_reaction_gradients_match_finite_differences():
     # wall, and most nodes of each field are empty: every entry of the whole parameter pytree
     # is finite, and d/d(phi, mu) matches central differences (relative step 1e-6, float64;
     # docs/validation.md §8). The back face read alone (`facing`) is in the loss too.
-    scene = small_active_wall()
-    back = Probe("back", "contact_force", pair=("backfill", "wall"), facing=(-1.0, 0.0))
-    sim = Simulation(dataclasses.replace(scene, probes=scene.probes + (back,)))
+    sim = Simulation(small_active_wall_read_behind())
     late = sim.time > 0.03
 
-    def loss(params):
-        probes = sim.probes(params)
-        return (jnp.mean(probes["thrust"][late, 0]) + jnp.mean(probes["thrust"][late, 1]) + jnp.mean(probes["push"][late, 0])
-                + 0.5 * jnp.mean(probes["back"][late, 1]))
+    def loss(probes):
+        return (probes["thrust"][late, 0].mean() + probes["thrust"][late, 1].mean() + probes["push"][late, 0].mean()
+                + 0.5 * probes["back"][late, 1].mean())
 
-    reverse_mode_against_central_differences(sim, loss, [
+    reverse_mode_of_probes_against_central_differences(sim, loss, [
         ("sand.friction_angle", 30.0, ("materials", "sand", "friction_angle")),
         ("backfill/wall.friction", 0.3, ("contacts", "backfill/wall", "friction")),
     ], rel=1e-4)
@@ -779,7 +785,7 @@ def test_unpaired_bodies_are_bonded_to_paired_ones():
 
 
 def test_friction_changes_do_not_recompile(count_step_traces):
-    sim = Simulation(small_active_wall(duration=0.01))
+    sim = Simulation(small_active_wall_read_behind())
     traces = count_step_traces(sim)
     for friction in (0.1, 0.2, np.float64(0.5), jnp.asarray(0.7)):
         sim.probes(with_values(sim.params, {"backfill/wall.friction": friction}))["thrust"].block_until_ready()
@@ -789,7 +795,7 @@ def test_friction_changes_do_not_recompile(count_step_traces):
 def test_a_prescribed_velocity_beyond_the_time_step_is_refused():
     # The scene's time step keeps every body within a cell per step; a faster prescribed
     # velocity passed later as a parameter is one clear error, not a broken run.
-    sim = Simulation(small_active_wall(duration=0.01))
+    sim = Simulation(small_active_wall_read_behind())
     fast = np.asarray(sim.params["bodies"]["wall"]["velocity"]) * 0.0
     fast[2:, 0] = -2.0 * sim.scene.grid.cell / sim.dt
     with pytest.raises(SceneError, match=r"params\['bodies'\]\['wall'\]\['velocity'\] reaches"):
