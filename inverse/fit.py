@@ -27,6 +27,41 @@ from jaxmpm.running.tracing import collector_paused
 BEYOND_ONE_STEP = 0.5   # a numerical shift over this fraction of a fitted value: fit again, not read the step
 
 
+@dataclasses.dataclass(frozen=True)
+class NumericalError:
+    """How far a fit's values would move at refined numerics (one refinement).
+
+    shift: {name: shift}, the Gauss-Newton step of the refined problem from the fitted values
+    (inverse/numerical_error.py); in_standard_errors: {name: |shift| / standard error} (NaN
+    where the standard error is not finite or zero); dominant: "numerics" if any shift is at
+    least one standard error, "noise" if none is, None if no standard error is finite;
+    beyond_one_step: the names whose shift exceeds BEYOND_ONE_STEP of their fitted value. Such
+    a shift is past what one Gauss-Newton step can be trusted for: fit again at the refined
+    numerics instead (a fit of the wall twin at its cell to data made at half of it was biased
+    by -4.2 deg in the friction angle, where the step said +34 deg; docs/calibration.md)."""
+
+    shift: dict
+    in_standard_errors: dict
+    dominant: str | None
+    beyond_one_step: tuple
+
+    @property
+    def trusted(self) -> bool:
+        """Whether the shift can be read as the numerics' bias (no shift beyond one step)."""
+        return not self.beyond_one_step
+
+
+def numerical_verdict(names, values, stderr, shift) -> NumericalError:
+    """The `NumericalError` of `shift` (P,) for parameters `names` with fitted `values` and
+    standard errors `stderr` ({name: value})."""
+    shifts = {name: float(s) for name, s in zip(names, shift, strict=True)}
+    ratios = {name: abs(shifts[name]) / stderr[name] if 0.0 < stderr[name] < np.inf else float("nan") for name in names}
+    finite = [ratio for ratio in ratios.values() if np.isfinite(ratio)]
+    dominant = None if not finite else "numerics" if max(finite) >= 1.0 else "noise"
+    beyond = tuple(name for name in names if abs(shifts[name]) > BEYOND_ONE_STEP * abs(values[name]))
+    return NumericalError(shifts, ratios, dominant, beyond)
+
+
 def gauss_newton(residuals, values, noise_known, linearization=None):
     """(covariance (P, P), jacobian (M, P)) of the residual function at `values` (or of its
     `linearization` (r (M,), jacobian (M, P)) there, when the optimiser already holds it).
@@ -214,28 +249,28 @@ class Fit:
             lines.append(f"  warning: {self.warning}")
         return "\n".join(lines)
 
+    def numerical_error(self) -> dict:
+        """{refinement: NumericalError} for each refinement checked (`calibrate(numerical_check=...)`):
+        the shifts, their size in standard errors, which dominates, and the parameters whose
+        shift is beyond one Gauss-Newton step (`numerical_verdict`)."""
+        return {refinement: numerical_verdict(self.names, self.params, self.stderr, shift)
+                for refinement, shift in self.numerical_shifts.items()}
+
     def numerical_error_lines(self) -> list[str]:
-        """One line per refinement checked (`calibrate(numerical_check=...)`): how far each
-        value would move at the refined numerics, in standard errors, and which dominates.
-        A shift of more than half a value (`BEYOND_ONE_STEP`) is past what one Gauss–Newton
-        step can be trusted for: the line then says to fit again at the refined numerics (a
-        fit of the wall twin at its cell to data made at half of it was biased by -4.2 deg
-        in the friction angle, where the step said +34 deg; docs/calibration.md)."""
+        """One line per refinement checked: how far each value would move at the refined
+        numerics, in standard errors, and which dominates (`numerical_verdict`)."""
         lines = []
         for refinement, shift in self.numerical_shifts.items():
-            errors = [self.stderr[n] for n in self.names]
-            ratios = [abs(s) / e if 0.0 < e < np.inf else np.nan for s, e in zip(shift, errors)]
-            moves = ", ".join(f"{n} {s:+.3g} ({f'{r:.2g} se' if np.isfinite(r) else 'no standard error'})"
-                              for n, s, r in zip(self.names, shift, ratios))
-            finite = [r for r in ratios if np.isfinite(r)]
-            verdict = ("no parameter has a finite standard error to compare with" if not finite
-                       else "the numerics dominate the noise" if max(finite) >= 1.0
-                       else "the noise dominates")
-            far = [n for n, s in zip(self.names, shift) if abs(s) > BEYOND_ONE_STEP * abs(self.params[n])]
-            if far:
-                verdict += (f"; the shift is over half the value of {', '.join(far)}, beyond what one "
-                            "Gauss-Newton step can say: fit again at the refined numerics")
-            lines.append(f"  numerical error ({REFINEMENT_LABELS[refinement]}): {moves}; {verdict}")
+            verdict = numerical_verdict(self.names, self.params, self.stderr, shift)
+            moves = ", ".join(f"{name} {verdict.shift[name]:+.3g} "
+                              f"({f'{ratio:.2g} se' if np.isfinite(ratio) else 'no standard error'})"
+                              for name, ratio in verdict.in_standard_errors.items())
+            words = {"numerics": "the numerics dominate the noise", "noise": "the noise dominates",
+                     None: "no parameter has a finite standard error to compare with"}[verdict.dominant]
+            if verdict.beyond_one_step:
+                words += (f"; the shift is over half the value of {', '.join(verdict.beyond_one_step)}, beyond "
+                          "what one Gauss-Newton step can say: fit again at the refined numerics")
+            lines.append(f"  numerical error ({REFINEMENT_LABELS[refinement]}): {moves}; {words}")
         return lines
 
     def plot(self, path=None):

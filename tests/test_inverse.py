@@ -619,3 +619,35 @@ def test_the_compile_clock_counts_compiling_only():
         fresh(jnp.arange(7.0)).block_until_ready()
     assert 0.0 < first.seconds <= first.elapsed
     assert again.seconds == 0.0
+
+
+def test_a_fits_numerical_error_gives_its_verdict_to_a_program():
+    # Fit.numerical_error() carries what the summary line says, for a program to act on, on the
+    # wall twin's numbers (docs/calibration.md, 2026-12-07): the cell's shift is beyond one step
+    # and not to be trusted; the time step's is, and dominates the noise in fluidity (1.85 /
+    # 1.77 = 1.05 standard errors); a shift under every standard error leaves the noise
+    # dominant, and no finite standard error leaves no verdict.
+    from types import SimpleNamespace
+
+    from inverse.fit import Fit
+
+    names = ("sand.friction_angle", "sand.fluidity", "sand.exponent")
+    stderr = {"sand.friction_angle": 0.548, "sand.fluidity": 1.77, "sand.exponent": 0.531}
+    far = SimpleNamespace(names=names, stderr=stderr,
+                          params={"sand.friction_angle": 25.82, "sand.fluidity": 2.25, "sand.exponent": 1.474},
+                          numerical_shifts={"cell": np.array([34.2, -53.6, -19.1])})
+    cell = Fit.numerical_error(far)["cell"]
+    assert cell.beyond_one_step == names and not cell.trusted and cell.dominant == "numerics"
+    assert cell.shift["sand.friction_angle"] == 34.2
+    assert cell.in_standard_errors["sand.friction_angle"] == pytest.approx(34.2 / 0.548)
+    near = SimpleNamespace(names=names, stderr=stderr,
+                           params={"sand.friction_angle": 30.30, "sand.fluidity": 6.58, "sand.exponent": 2.077},
+                           numerical_shifts={"dt": np.array([-0.29, -1.85, -0.079]), "stress": np.array([0.1, 0.2, 0.05])})
+    dt, stress = Fit.numerical_error(near)["dt"], Fit.numerical_error(near)["stress"]
+    assert dt.trusted and dt.dominant == "numerics"
+    assert dt.in_standard_errors["sand.fluidity"] == pytest.approx(1.85 / 1.77)
+    assert stress.trusted and stress.dominant == "noise"
+    unknown = SimpleNamespace(names=names, params=near.params, stderr=dict.fromkeys(names, np.inf),
+                              numerical_shifts={"dt": np.array([-0.29, -1.85, -0.079])})
+    verdict = Fit.numerical_error(unknown)["dt"]
+    assert verdict.dominant is None and np.isnan(verdict.in_standard_errors["sand.exponent"])
