@@ -434,6 +434,45 @@ def outline_distances(corners, positions, excluded=None):
     return jnp.where(outside, safe_norm(away), depth), jnp.where(outside[..., None], unit(away), nearest_edge)
 
 
+def cell_meets_outline(corners, positions, cell):
+    """(...) bool: whether the square of side `cell` centred on each of `positions` (..., 2)
+    meets the convex outline `corners` (K, 2, counter-clockwise). Separating axes: the two are
+    apart if, along an edge's outward normal n_e, the square's nearest extent lies beyond the
+    edge, n_e . (x - a_e) > (cell / 2)(|n_x| + |n_y|), or if their extents along x or y do not
+    overlap."""
+    half = 0.5 * cell
+    normals = edge_normals(corners)                                                          # (K, 2)
+    beyond = jnp.sum((positions[..., None, :] - corners) * normals, axis=-1)                 # (..., K)
+    reach = half * (jnp.abs(normals[:, 0]) + jnp.abs(normals[:, 1]))
+    apart = jnp.any(beyond > reach, axis=-1)
+    for axis in range(2):
+        apart |= (jnp.min(corners[:, axis]) > positions[..., axis] + half)
+        apart |= (jnp.max(corners[:, axis]) < positions[..., axis] - half)
+    return ~apart
+
+
+def held_by_outline(structure, state, occupied):
+    """`occupied` (F, nx, ny) with each prescribed or rigid body of convex outline kept only at
+    the nodes whose cell meets its outline at the state's time (`cell_meets_outline`;
+    numerics.structure_hold = "outline").
+
+    Such a body counts as infinitely heavy in a contact (`contact.interface_impulse`): at every
+    node it occupies it sets the other field's velocity (its normal part), whatever its own
+    share of the node's mass. Its points sit a quarter cell inside its outline (ppc 2) and
+    reach nodes a shape function's support beyond them, up to a cell and a quarter outside the
+    outline with quadratic B-splines: the body then acts a cell larger all round, and a wall
+    held up by its three-cell base moved twice as far at each halving of the cell. A node whose
+    cell the outline does not meet holds nothing of the body at the grid's resolution."""
+    positions = node_positions(structure.layout, state.particles.x.dtype)
+    for block in kinematic_blocks(structure):
+        if block.outline is None:
+            continue
+        corners = outline_now(block, state, positions.dtype, structure.axisymmetric)
+        meets = cell_meets_outline(corners, positions, structure.layout.cell)
+        occupied = occupied.at[block.field].set(occupied[block.field] & meets)
+    return occupied
+
+
 def edge_normals(corners):
     """(K, 2) outward unit normals of the edges of an outline (K, 2) whose corners run
     counter-clockwise; edge k runs from corner k to corner k + 1."""

@@ -65,7 +65,7 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from jaxmpm.physics.bodies import (
-    Grid, impose_body_motions, keep_points_outside, move_kinematic_bodies, node_positions, normal_cones,
+    Grid, held_by_outline, impose_body_motions, keep_points_outside, move_kinematic_bodies, node_positions, normal_cones,
     prescribed_outline_normals, received_impulses,
 )
 from jaxmpm.physics.contact import Interface, apply_interfaces, normals_of
@@ -149,7 +149,9 @@ class Structure:
     for a subcycled body alone on the grid: `local_damping`); corner_radius: in cells, the
     rounding of prescribed bodies' corners in their contact normal (`bodies.corner_radius`);
     stress_substeps: the updates of dt / stress_substeps each step's stress update of a free body
-    that can yield is made of (`materials.base.points_update`); facings: the (pair name, unit
+    that can yield is made of (`materials.base.points_update`); structure_hold: "mass" or
+    "outline", the nodes at which a prescribed or rigid body holds the fields in contact with it
+    (`bodies.held_by_outline`); facings: the (pair name, unit
     direction) whose face of the contact force the step reports (`facing_forces`).
     """
 
@@ -169,6 +171,7 @@ class Structure:
     damps: str = "motion"
     corner_radius: float = 1.0
     stress_substeps: int = 1
+    structure_hold: str = "mass"
     facings: tuple[tuple[str, tuple[float, float]], ...] = ()
 
     @property
@@ -548,14 +551,17 @@ def make_step(structure: Structure):
         )
         time_new = (state.step + 1).astype(particles.x.dtype) * dt
         prediction = predict(steps_alone, params, particles, structure, subcycled)
-        grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, nodes.mass > floor)
+        occupied = nodes.mass > floor
+        if structure.structure_hold == "outline" and structure.has_kinematic_bodies:
+            occupied = held_by_outline(structure, state, occupied)
+        grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, occupied)
         normals = normals_of(structure.interfaces, nodes.mass, nodes.mass_gradient, contact_outlines(structure, state))
         velocity_new, motions = impose_body_motions(params, state, structure, grid, frictions, time_new, normals,
                                                     prediction.motions)
         impulses = []
         if structure.interfaces:
             velocity_new, impulses = jax.named_call(apply_interfaces, name="contact")(
-                structure.interfaces, nodes.mass, velocity_new, normals, frictions, nodes.mass > floor
+                structure.interfaces, nodes.mass, velocity_new, normals, frictions, occupied
             )
             velocity_new = constrain(velocity_new)
         ended = correct(steps_alone, params, structure, subcycled, prediction, motions,

@@ -222,6 +222,7 @@ class Simulation:
             axisymmetric=scene.geometry == "axisymmetric",
             corner_radius=scene.numerics.corner_radius,
             stress_substeps=scene.numerics.stress_substeps,
+            structure_hold=scene.numerics.structure_hold,
             facings=contact_facings(scene),
         )
         self.params = scene_parameters(scene)

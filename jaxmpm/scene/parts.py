@@ -69,6 +69,8 @@ DEFAULT_PRESET = "balanced"
 DEFAULT_RELAXATION = 0.0
 DEFAULT_CORNER_RADIUS = 1.0
 DEFAULT_STRESS_SUBSTEPS = 1
+STRUCTURE_HOLDS = ("mass", "outline")
+DEFAULT_STRUCTURE_HOLD = "mass"
 MAX_STRESS_SUBSTEPS = 64
 DEFAULT_CFL = 0.4
 
@@ -86,6 +88,10 @@ class Numerics:
     at which a prescribed body's outline has its corners rounded where it meets free bodies (0:
     sharp corners; `bodies.rounded_outline`). stress_substeps: the updates of dt / stress_substeps
     each step's stress update of a body that can yield is made of (`materials.base.points_update`).
+    structure_hold: the nodes at which a prescribed or rigid body holds the bodies in contact with
+    it: "mass", wherever its points have mass (the multi-velocity-field rule), or "outline", only
+    where the node's cell (the square of side h centred on it) meets its outline
+    (`bodies.held_by_outline`).
     """
 
     preset: str = DEFAULT_PRESET
@@ -99,6 +105,7 @@ class Numerics:
     relaxation: float = DEFAULT_RELAXATION
     corner_radius: float = DEFAULT_CORNER_RADIUS
     stress_substeps: int = DEFAULT_STRESS_SUBSTEPS
+    structure_hold: str = DEFAULT_STRUCTURE_HOLD
     # The values the preset filled in (not given by the user): `to_dict` leaves them out, and
     # `dataclasses.replace(numerics, preset=...)` fills them again from the new preset.
     filled: dict | None = dataclasses.field(default=None, compare=False, repr=False)
@@ -106,6 +113,9 @@ class Numerics:
     def __post_init__(self):
         if self.preset not in PRESETS:
             raise SceneError(f"numerics.preset = {self.preset!r} is not one of {', '.join(map(repr, PRESETS))}.")
+        if self.structure_hold not in STRUCTURE_HOLDS:
+            raise SceneError(f"numerics.structure_hold = {self.structure_hold!r} is not one of "
+                             f"{', '.join(map(repr, STRUCTURE_HOLDS))}.")
         previous, filled = self.filled or {}, {}
         for name, value in PRESETS[self.preset].items():
             given = getattr(self, name)
@@ -118,7 +128,7 @@ class Numerics:
         """The choices this Numerics states itself: its preset, damping, a relaxation and a
         corner radius other than the defaults, and every override."""
         defaults = {"relaxation": DEFAULT_RELAXATION, "corner_radius": DEFAULT_CORNER_RADIUS,
-                    "stress_substeps": DEFAULT_STRESS_SUBSTEPS}
+                    "stress_substeps": DEFAULT_STRESS_SUBSTEPS, "structure_hold": DEFAULT_STRUCTURE_HOLD}
         return {field.name: getattr(self, field.name) for field in dataclasses.fields(self)
                 if field.name != "filled" and field.name not in self.filled
                 and not (field.name in defaults and getattr(self, field.name) == defaults[field.name])}

@@ -1,0 +1,130 @@
+"""numerics.structure_hold: the nodes at which a prescribed or rigid body holds the soil.
+
+Sources: the separating-axis theorem for two convex polygons (a square and the outline are
+apart exactly when their projections on one of their edge normals do not overlap), checked
+against brute-force sampling; the twin's measurements behind the option are in
+docs/convergence.md ("Examples under cell refinement")."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxmpm import Scene, SceneError, Simulation
+from jaxmpm.physics.bodies import cell_meets_outline
+
+
+def sampled_meets(corners, position, cell, samples=41):
+    """Whether the square of side `cell` about `position` and the convex outline share a point,
+    by sampling the square and testing the outline's corners against the square."""
+    edges = np.roll(corners, -1, axis=0) - corners
+    normals = np.stack([edges[:, 1], -edges[:, 0]], axis=-1) / np.linalg.norm(edges, axis=1)[:, None]
+    offsets = np.linspace(-0.5 * cell, 0.5 * cell, samples)
+    square = position + np.stack(np.meshgrid(offsets, offsets), axis=-1).reshape(-1, 2)
+    inside = np.all(np.einsum("skd,kd->sk", square[:, None, :] - corners[None], normals) <= 0.0, axis=1)
+    corner_in_square = np.all(np.abs(corners - position) <= 0.5 * cell, axis=1)
+    return bool(np.any(inside) or np.any(corner_in_square))
+
+
+@pytest.mark.parametrize("turn", [0.0, 0.3, 0.785])
+def test_a_nodes_cell_meets_an_outline_exactly_where_sampling_finds_a_shared_point(turn):
+    # A 0.3 x 0.1 rectangle turned by `turn` and a hexagon; nodes of a 0.05 m grid round them.
+    # Positions whose answer changes within 2 % of the cell (tangent squares) are left out:
+    # sampling cannot resolve them.
+    cell = 0.05
+    rotation = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+    rectangle = np.array([[-0.15, -0.05], [0.15, -0.05], [0.15, 0.05], [-0.15, 0.05]]) @ rotation.T
+    hexagon = 0.12 * np.stack([np.cos(np.arange(6) * np.pi / 3 + turn), np.sin(np.arange(6) * np.pi / 3 + turn)], axis=-1)
+    axis = np.arange(-0.3, 0.3001, cell / 2.5)
+    positions = np.stack(np.meshgrid(axis, axis, indexing="ij"), axis=-1)
+    compared = 0
+    for corners in (rectangle, hexagon):
+        meets = np.asarray(cell_meets_outline(corners, positions, cell))
+        settled = (meets == np.asarray(cell_meets_outline(corners, positions, 0.98 * cell))) & \
+                  (meets == np.asarray(cell_meets_outline(corners, positions, 1.02 * cell)))
+        assert 0 < np.sum(meets) < meets.size
+        for index in zip(*np.nonzero(settled)):
+            assert meets[index] == sampled_meets(corners, positions[index], cell), (corners, positions[index])
+            compared += 1
+    assert compared > 1000
+
+
+FOOTING = """
+[scene]
+name = "footing"
+duration = 0.003
+dt = 1e-4
+output_every = 1e-3
+[grid]
+size = [0.6, 0.3]
+cell = 0.025
+boundaries = { left = "slip", right = "slip", bottom = "fixed", top = "free" }
+[numerics]
+shape = "bspline2"
+transfer = "apic"
+ppc = 2
+dtype = "float64"
+[materials.sand]
+model = "linear_elastic"
+density = 1800.0
+young = 5.0e6
+poisson = 0.3
+[materials.steel]
+model = "linear_elastic"
+density = 7800.0
+young = 2.0e11
+poisson = 0.3
+[[bodies]]
+name = "sand"
+material = "sand"
+region = { rectangle = [[0.0, 0.0], [0.6, 0.15]] }
+[[bodies]]
+name = "footing"
+material = "steel"
+region = { rectangle = [[0.25, 0.15], [0.35, 0.2]] }
+kinematics = { type = "prescribed", velocity = [0.0, -0.05] }
+[[contacts]]
+pair = ["sand", "footing"]
+friction = 0.5
+[[probes]]
+name = "push"
+kind = "reaction"
+body = "footing"
+"""
+
+
+def test_an_outline_hold_gives_the_soil_only_the_nodes_whose_cell_meets_the_structure():
+    # A prescribed footing pushed into an elastic layer, three steps. Under the default hold the
+    # footing's points (a quarter cell inside its outline, quadratic B-splines) reach nodes a
+    # cell and a quarter beyond it, and the sand there is set moving with it at the first step:
+    # the force that drives it down (its reaction) is that of a footing a cell wider on each
+    # side and a cell deeper. Under "outline" only the nodes whose cell meets the footing hold
+    # the sand (checked node by node below): less sand is set moving, and the force is less
+    # than half.
+    from jaxmpm.physics.bodies import held_by_outline, node_positions
+
+    scene = Scene.from_toml(FOOTING)
+    outline = Scene.from_toml(FOOTING.replace('dtype = "float64"', 'dtype = "float64"\nstructure_hold = "outline"'))
+    assert outline.numerics.structure_hold == "outline" and scene.numerics.structure_hold == "mass"
+    assert outline.to_dict()["numerics"]["structure_hold"] == "outline"
+    sims = Simulation(scene), Simulation(outline)
+    assert sims[1].structure.structure_hold == "outline"
+    pushes = [float(np.asarray(sim.probes()["push"])[-1, 1]) for sim in sims]
+    assert 0.0 < -pushes[1] < -pushes[0]        # the force driving the footing down, smaller
+    assert -pushes[1] < 0.5 * -pushes[0]        # measured: 113 against 502 N/m
+
+    sim = sims[1]
+    state = sim.initial_state()
+    positions = np.asarray(node_positions(sim.structure.layout, state.particles.x.dtype))
+    footing = next(block for block in sim.structure.bodies if block.name == "footing")
+    everywhere = jnp.ones((sim.structure.fields,) + positions.shape[:2], bool)
+    held = np.asarray(held_by_outline(sim.structure, state, everywhere))[footing.field]
+    cell = sim.structure.layout.cell
+    expected = ((positions[..., 0] >= 0.25 - cell / 2 - 1e-12) & (positions[..., 0] <= 0.35 + cell / 2 + 1e-12)
+                & (positions[..., 1] >= 0.15 - cell / 2 - 1e-12) & (positions[..., 1] <= 0.2 + cell / 2 + 1e-12))
+    np.testing.assert_array_equal(held, expected)
+    assert np.asarray(held_by_outline(sim.structure, state, everywhere))[0].all()   # the sand's field untouched
+
+
+def test_an_unknown_structure_hold_is_one_clear_error():
+    with pytest.raises(SceneError, match=r"^numerics\.structure_hold = 'nodes' is not one of 'mass', 'outline'\.$"):
+        Scene.from_toml(FOOTING.replace('dtype = "float64"', 'dtype = "float64"\nstructure_hold = "nodes"'))
