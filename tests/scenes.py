@@ -41,28 +41,32 @@ body = "block"
 """
 
 
-def reverse_mode_against_central_differences(sim, loss, cases, rel, relative_step=1e-6):
-    """One jitted reverse-mode gradient of `loss(params)` (every leaf finite) and, for each
-    (dotted name, value, path into the gradient) of `cases`, its derivative against central
-    differences with relative step `relative_step` (1e-6 unless a switch lies within it,
-    docs/validation.md §8): nonzero and within `rel`."""
+def reverse_mode_against_central_differences(sim, reduce, cases, rel, relative_step=1e-6):
+    """One jitted reverse-mode gradient of the loss reduce(sim.probes(params)) (every leaf
+    finite) and, for each (dotted name, value, path into the gradient) of `cases`, its
+    derivative against central differences with relative step `relative_step` (1e-6 unless a
+    switch lies within it, docs/validation.md §8): nonzero and within `rel`. The differences
+    run on `sim.probes` itself, so the program that reads the probes is compiled once for the
+    test's own reads and the differences. `reduce` takes the probes as JAX arrays (traced) or
+    NumPy arrays (the differences)."""
     import jax
     import jax.numpy as jnp
+    import numpy as np
     import pytest
 
     from jaxmpm import with_values
 
     params = sim.cast(sim.params)
-    gradient = jax.jit(jax.grad(loss))(params)
+    gradient = jax.jit(jax.grad(lambda values: reduce(sim.probes(values))))(params)
     assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree_util.tree_leaves(gradient))
-    forward = jax.jit(loss)
     for name, value, path in cases:
         derivative = gradient
         for key in path:
             derivative = derivative[key]
         step = relative_step * value
-        above, below = (forward(with_values(params, {name: jnp.asarray(value + sign * step)})) for sign in (1, -1))
-        reference = (float(above) - float(below)) / (2 * step)
+        moved = (with_values(params, {name: jnp.asarray(value + sign * step)}) for sign in (1, -1))
+        above, below = (float(reduce(jax.tree_util.tree_map(np.asarray, sim.probes(values)))) for values in moved)
+        reference = (above - below) / (2 * step)
         assert float(derivative) != 0.0
         assert float(derivative) == pytest.approx(reference, rel=rel), name
 

@@ -510,8 +510,8 @@ def test_gradients_through_an_axisymmetric_rigid_pile_match_finite_differences()
     # derivative: d(sinking)/d(steel density, sand friction angle) against central differences.
     sim = jaxmpm.Simulation(dropped_pile("rigid", axisymmetric=True).with_value("scene.duration", 0.02))
 
-    def sinking(params):
-        return sim.probes(params)["sink"][-1, 1]
+    def sinking(probes):
+        return probes["sink"][-1, 1]
 
     reverse_mode_against_central_differences(sim, sinking, [
         ("steel.density", 7850.0, ("materials", "steel", "density")),

@@ -451,8 +451,8 @@ def test_bonded_rigid_plate_gradients_match_finite_differences():
     # density (its mass M in the 3 x 3 system), central differences with relative step 1e-6.
     sim = Simulation(bonded_plate(duration=0.05))
 
-    def loss(params):
-        return jnp.mean(sim.probes(params)["plate"][:, 0])
+    def loss(probes):
+        return jnp.mean(probes["plate"][:, 0])
 
     reverse_mode_against_central_differences(sim, loss, [
         ("soft.young", 1e6, ("materials", "soft", "young")),
@@ -537,26 +537,6 @@ def earth_pressures(friction_angle=30.0, wall_friction=0.0, height=0.5, density=
 FACES = {"back": (-1.0, 0.0), "base": (0.0, 1.0), "front": (1.0, 0.0), "top": (0.0, -1.0)}
 
 
-def reverse_mode_of_probes_against_central_differences(sim, reduce, cases, rel):
-    """tests/scenes.py's check for the loss reduce(sim.probes(params)), its central differences
-    (relative step 1e-6) run by `sim.probes` itself: the program that reads the scene's probes
-    is compiled once for the test's own reads and the differences, not again as a jit of the
-    loss. `reduce` takes the probes as JAX arrays (traced) or NumPy arrays (the differences)."""
-    params = sim.cast(sim.params)
-    gradient = jax.jit(jax.grad(lambda values: reduce(sim.probes(values))))(params)
-    assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree_util.tree_leaves(gradient))
-    for name, value, path in cases:
-        derivative = gradient
-        for key in path:
-            derivative = derivative[key]
-        step = 1e-6 * value
-        moved = (with_values(params, {name: jnp.asarray(value + sign * step)}) for sign in (1, -1))
-        above, below = (float(reduce(jax.tree_util.tree_map(np.asarray, sim.probes(values)))) for values in moved)
-        reference = (above - below) / (2 * step)
-        assert float(derivative) != 0.0
-        assert float(derivative) == pytest.approx(reference, rel=rel), name
-
-
 def test_a_contact_force_splits_into_the_faces_of_a_wall_and_its_gradients_match_finite_differences():
     # The rigid wall of tests/test_convergence.py (a wall on a sand foundation holding a
     # backfill behind it, released at t = 0) over its first 0.04 s, with the force of the sand
@@ -594,7 +574,7 @@ def test_a_contact_force_splits_into_the_faces_of_a_wall_and_its_gradients_match
 
     release = sim.steps_per_output + 1          # t = 0 ... 0.02 s
     assert sim.time[release - 1] == pytest.approx(0.02)
-    reverse_mode_of_probes_against_central_differences(sim, lambda probes: probes["wall_top"][:release, 0].mean(), [
+    reverse_mode_against_central_differences(sim, lambda probes: probes["wall_top"][:release, 0].mean(), [
         ("sand.friction_angle", 30.0, ("materials", "sand", "friction_angle")),
         ("sand/wall.friction", 0.4, ("contacts", "sand/wall", "friction")),
     ], rel=1e-4)
@@ -650,7 +630,7 @@ def test_a_subcycled_wall_reads_its_faces_and_its_gradients_match_finite_differe
                                atol=1e-9 * np.abs(force["whole"]).max())
     assert force["back"][-10:, 0].mean() < 0.0                  # the backfill pushes towards -x
 
-    reverse_mode_of_probes_against_central_differences(sim, lambda probes: probes["wall_top"][:, 0].mean(), [
+    reverse_mode_against_central_differences(sim, lambda probes: probes["wall_top"][:, 0].mean(), [
         ("concrete.young", 30.0e9, ("materials", "concrete", "young")),
         ("concrete.density", 2400.0, ("materials", "concrete", "density")),
         ("sand/wall.friction", 0.4, ("contacts", "sand/wall", "friction")),
@@ -721,7 +701,7 @@ def test_thrust_and_reaction_gradients_match_finite_differences():
         return (probes["thrust"][late, 0].mean() + probes["thrust"][late, 1].mean() + probes["push"][late, 0].mean()
                 + 0.5 * probes["back"][late, 1].mean())
 
-    reverse_mode_of_probes_against_central_differences(sim, loss, [
+    reverse_mode_against_central_differences(sim, loss, [
         ("sand.friction_angle", 30.0, ("materials", "sand", "friction_angle")),
         ("backfill/wall.friction", 0.3, ("contacts", "backfill/wall", "friction")),
     ], rel=1e-4)

@@ -115,8 +115,8 @@ def test_gradients_through_stress_substeps_match_finite_differences():
     sand_points = sim.body_slices[0][1] - sim.body_slices[0][0]
     assert kept_solve_bytes(sim.structure, np.float64) == 3 * sand_points * 8
 
-    def loss(params):
-        return jnp.mean(sim.probes(params)["top"][:, 0])
+    def loss(probes):
+        return jnp.mean(probes["top"][:, 0])
 
     reverse_mode_against_central_differences(sim, loss, [
         ("sand.fluidity", 0.5, ("materials", "sand", "fluidity")),
@@ -624,8 +624,8 @@ def test_gradients_through_points_kept_out_of_a_punch_match_finite_differences()
     sim = Simulation(scene)
     late = sim.time > 0.2
 
-    def loss(params):
-        return jnp.mean(sim.probes(params)["push"][late, 1])
+    def loss(probes):
+        return jnp.mean(probes["push"][late, 1])
 
     reverse_mode_against_central_differences(
         sim, loss, [("sand.friction_angle", 30.0, ("materials", "sand", "friction_angle"))], rel=1e-4,
