@@ -545,20 +545,27 @@ def test_a_contact_force_splits_into_the_faces_of_a_wall_and_its_gradients_match
     # backfill's push towards the open side, the base the wall's weight, and the front and top,
     # where there is no sand, nothing.
     # Reverse mode through the rigid wall's Newton solve (its derivative is the implicit
-    # function theorem's, bodies.solve_rigid_motions), the transfer memory and the points kept
-    # outside its outline: the wall top's mean displacement over a short release (its first
-    # 0.02 s, the first output interval: the same steps as a run of 0.02 s) against the sand's
-    # friction angle and the wall friction, central differences with relative step 1e-6. One
-    # scene for both, so the program that runs it is compiled once for the reads and the
+    # function theorem's, bodies.solve_rigid_motions), the transfer memory, the points kept
+    # outside its outline and the stress substeps (a loop of K Perzyna solves in each step,
+    # whose roots a checkpointed step keeps: K values a point), the backfill viscoplastic: the
+    # wall top's mean displacement over a short release (its first 0.02 s, the first output
+    # interval: the same steps as a run of 0.02 s) against the sand's friction angle, fluidity
+    # and exponent and the wall friction, central differences with relative step 1e-6. One
+    # scene for all, so the program that runs it is compiled once for the reads and the
     # differences.
+    from jaxmpm.physics.solver import kept_solve_bytes
     from tests.test_convergence import small_wall
 
-    scene = small_wall(duration=0.04)
+    scene = small_wall(duration=0.04).with_value("numerics.stress_substeps", 3)
+    scene = dataclasses.replace(scene, materials={
+        **scene.materials, "sand": dataclasses.replace(scene.materials["sand"], fluidity=0.5, exponent=3.0)})
     faces = tuple(Probe(name, "contact_force", pair=("sand", "wall"), facing=direction) for name, direction in FACES.items())
     probes = (Probe("whole", "contact_force", pair=("sand", "wall")),
               Probe("back_read_backwards", "contact_force", pair=("wall", "sand"), facing=(3.0, 0.0))) + faces
     wall_top = dataclasses.replace(scene.probes[0], name="wall_top")         # "top" names a face here
     sim = Simulation(dataclasses.replace(scene, probes=probes + (wall_top,)))
+    sand_points = sim.body_slices[0][1] - sim.body_slices[0][0]
+    assert kept_solve_bytes(sim.structure, np.float64) == 3 * sand_points * 8
     force = {name: np.asarray(history) for name, history in sim.probes().items()}
     whole = force["whole"]
     np.testing.assert_allclose(sum(force[name] for name in FACES), whole, rtol=0, atol=1e-9 * np.abs(whole).max())
@@ -576,6 +583,8 @@ def test_a_contact_force_splits_into_the_faces_of_a_wall_and_its_gradients_match
     assert sim.time[release - 1] == pytest.approx(0.02)
     reverse_mode_against_central_differences(sim, lambda probes: probes["wall_top"][:release, 0].mean(), [
         ("sand.friction_angle", 30.0, ("materials", "sand", "friction_angle")),
+        ("sand.fluidity", 0.5, ("materials", "sand", "fluidity")),
+        ("sand.exponent", 3.0, ("materials", "sand", "exponent")),
         ("sand/wall.friction", 0.4, ("contacts", "sand/wall", "friction")),
     ], rel=1e-4)
 
