@@ -126,6 +126,21 @@ def test_an_outline_hold_gives_the_soil_only_the_nodes_whose_cell_meets_the_stru
     np.testing.assert_array_equal(held, expected)
     assert np.asarray(held_by_outline(sim.structure, state, everywhere))[0].all()   # the sand's field untouched
 
+    # An elastic structure (a free body of elastic material and convex region in contact with
+    # sand that yields: its outline bounds the contact's normal) is held to its outline alike: its contact otherwise acts
+    # wherever both fields have mass, and a stiff elastic body would not move as the rigid one.
+    elastic = Simulation(Scene.from_toml(FOOTING.replace('dtype = "float64"', 'dtype = "float64"\nstructure_hold = "outline"')
+                                         .replace('kinematics = { type = "prescribed", velocity = [0.0, -0.05] }', '')
+                                         .replace('kind = "reaction"\nbody = "footing"', 'kind = "contact_force"\npair = ["sand", "footing"]')
+                                         .replace("dt = 1e-4", "dt = 4e-6")
+                                         .replace('model = "linear_elastic"\ndensity = 1800.0',
+                                                  'model = "drucker_prager"\nfriction_angle = 30.0\ndensity = 1800.0')))
+    assert [interface.bounded_by for interface in elastic.structure.interfaces] == [footing.field]
+    state = elastic.initial_state()
+    held = np.asarray(held_by_outline(elastic.structure, state, everywhere))
+    np.testing.assert_array_equal(held[footing.field], expected)
+    assert held[0].all()
+
 
 def test_an_unknown_structure_hold_is_one_clear_error():
     with pytest.raises(SceneError, match=r"^numerics\.structure_hold = 'nodes' is not one of 'mass', 'outline'\.$"):

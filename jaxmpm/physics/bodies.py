@@ -451,22 +451,32 @@ def cell_meets_outline(corners, positions, cell):
     return ~apart
 
 
+def held_structures(structure):
+    """The blocks of the structures whose outline limits where they hold the bodies in contact
+    with them (`held_by_outline`): prescribed and rigid bodies, and free bodies whose outline
+    bounds a contact's normal (`contact.Interface.bounded_by`: elastic structures), each of
+    convex outline."""
+    bounding = {interface.bounded_by for interface in structure.interfaces if interface.bounded_by is not None}
+    return tuple(block for block in structure.bodies
+                 if block.outline is not None and (block.kinematics in KINDS or block.field in bounding))
+
+
 def held_by_outline(structure, state, occupied):
-    """`occupied` (F, nx, ny) with each prescribed or rigid body of convex outline kept only at
-    the nodes whose cell meets its outline at the state's time (`cell_meets_outline`;
+    """`occupied` (F, nx, ny) with each structure (`held_structures`) kept only at the nodes
+    whose cell meets its outline at the state's time (`cell_meets_outline`;
     numerics.structure_hold = "outline").
 
-    Such a body counts as infinitely heavy in a contact (`contact.interface_impulse`): at every
-    node it occupies it sets the other field's velocity (its normal part), whatever its own
-    share of the node's mass. Its points sit a quarter cell inside its outline (ppc 2) and
-    reach nodes a shape function's support beyond them, up to a cell and a quarter outside the
-    outline with quadratic B-splines: the body then acts a cell larger all round, and a wall
-    held up by its three-cell base moved twice as far at each halving of the cell. A node whose
-    cell the outline does not meet holds nothing of the body at the grid's resolution."""
+    A prescribed or rigid body counts as infinitely heavy in a contact
+    (`contact.interface_impulse`): at every node it occupies it sets the other field's velocity
+    (its normal part), whatever its own share of the node's mass. Its points sit a quarter cell
+    inside its outline (ppc 2) and reach nodes a shape function's support beyond them, up to a
+    cell and a quarter outside the outline with quadratic B-splines: the body then acts a cell
+    larger all round, and a wall held up by its three-cell base moved twice as far at each
+    halving of the cell. An elastic structure's contact acts wherever both fields have mass,
+    and so from as far. A node whose cell the outline does not meet holds nothing of the body
+    at the grid's resolution."""
     positions = node_positions(structure.layout, state.particles.x.dtype)
-    for block in kinematic_blocks(structure):
-        if block.outline is None:
-            continue
+    for block in held_structures(structure):
         corners = outline_now(block, state, positions.dtype, structure.axisymmetric)
         meets = cell_meets_outline(corners, positions, structure.layout.cell)
         occupied = occupied.at[block.field].set(occupied[block.field] & meets)

@@ -65,7 +65,7 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from jaxmpm.physics.bodies import (
-    Grid, held_by_outline, impose_body_motions, keep_points_outside, move_kinematic_bodies, node_positions, normal_cones,
+    Grid, held_by_outline, held_structures, impose_body_motions, keep_points_outside, move_kinematic_bodies, node_positions, normal_cones,
     prescribed_outline_normals, received_impulses,
 )
 from jaxmpm.physics.contact import Interface, apply_interfaces, normals_of
@@ -552,7 +552,7 @@ def make_step(structure: Structure):
         time_new = (state.step + 1).astype(particles.x.dtype) * dt
         prediction = predict(steps_alone, params, particles, structure, subcycled)
         occupied = nodes.mass > floor
-        if structure.structure_hold == "outline" and structure.has_kinematic_bodies:
+        if structure.structure_hold == "outline" and held_structures(structure):
             occupied = held_by_outline(structure, state, occupied)
         grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, occupied)
         normals = normals_of(structure.interfaces, nodes.mass, nodes.mass_gradient, contact_outlines(structure, state))

@@ -82,11 +82,12 @@ NUMERICS = Section((
         "Euler) is first order in its own step, and a viscoplastic sand's result then moves with dt; each "
         "substep costs another stress update (docs/convergence.md)", default=DEFAULT_STRESS_SUBSTEPS, low=1,
         high=MAX_STRESS_SUBSTEPS, low_inclusive=True, high_inclusive=True),
-    Key("structure_hold", "str", "the nodes at which a prescribed or rigid body holds the bodies in contact with "
-        "it: 'mass', every node where its points have mass, up to a cell and a quarter beyond its outline with "
-        "quadratic B-splines (the multi-velocity-field rule), or 'outline', only the nodes whose cell (the square "
-        "of side h centred on the node) meets its outline; a structure held by its base, such as a free wall, "
-        "moves with the cell under 'mass' and converges under 'outline' (docs/convergence.md)",
+    Key("structure_hold", "str", "the nodes at which a structure (a prescribed or rigid body, or an elastic body "
+        "of convex region in contact with soil that yields) holds the bodies in contact with it: 'mass', every "
+        "node where its points have mass, up to a cell and a quarter beyond its outline with quadratic B-splines "
+        "(the multi-velocity-field rule), or 'outline', only the nodes whose cell (the square of side h centred "
+        "on the node) meets its outline; a structure held by its base, such as a free wall, moves with the cell "
+        "under 'mass' and converges under 'outline' (docs/convergence.md)",
         default=DEFAULT_STRUCTURE_HOLD, choices=STRUCTURE_HOLDS),
     Key("damping", "float", "local (Cundall) damping coefficient: each node's force is reduced by damping "
         "|f| sign(v); for quasi-static settling, never set by a preset", default=0.0, low=0.0, high=1.0,
