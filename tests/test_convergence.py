@@ -119,7 +119,8 @@ def test_a_stiff_elastic_wall_moves_like_the_rigid_one(stiff_elastic_wall):
     # E = 30 GPa is 6000 times the sand's modulus: the elastic wall's own strain is negligible,
     # so it must move as the rigid one does. Compared at the same dt (the elastic wall's p-wave
     # sets a step 60 times shorter), so that only the coupling differs: here 0.04-0.13 % apart
-    # at 0.03-0.045 s (0.01-0.13 % at 0.03-0.06 s), and within 1.4 % over 0.2 s (docs/convergence.md), both walls holding
+    # at 0.03-0.045 s (0.01-0.13 % at 0.03-0.06 s), and within 1.4 % over 0.2 s
+    # (docs/convergence.md), both walls holding
     # the contact normal in their outline's normal cone (1.2 % when both took the mean normal
     # alone). Before the elastic wall's points kept their own velocity (`solver.body_memory`),
     # the relaxation pulled them towards an APIC velocity that loses a thin body's rotation:
@@ -137,9 +138,11 @@ def test_a_stiff_elastic_wall_moves_like_the_rigid_one(stiff_elastic_wall):
 def test_a_subcycled_stiff_wall_moves_as_the_rigid_one_at_the_sands_step(stiff_elastic_wall):
     # Subcycled (physics/subcycling.py), the 30 GPa wall takes 61 substeps in each step of the
     # sand's cfl 0.4 and meets the sand as one body: it must move as the rigid wall at that step
-    # (here 0.5-0.7 % at 0.03-0.045 s, 0.5-0.8 % at 0.03-0.06 s; over 0.2 s: 0.7 %, 0.4 %, 0.3 % at 0.1, 0.15, 0.2 s), and
+    # (here 0.5-0.7 % at 0.03-0.045 s, 0.5-0.8 % at 0.03-0.06 s; over 0.2 s: 0.7 %, 0.4 %,
+    # 0.3 % at 0.1, 0.15, 0.2 s), and
     # its distance to the brute-force reference (the same wall as an ordinary free body at its
-    # own step, 61 times shorter) is the rigid wall's: here 1.2-1.7 % (1.2-2.1 % to 0.06 s), and 3.4 % at 0.1 s at
+    # own step, 61 times shorter) is the rigid wall's: here 1.2-1.7 % (1.2-2.1 % to 0.06 s),
+    # and 3.4 % at 0.1 s at
     # cfl 0.4 (docs/convergence.md). When the contact met the predicted node velocities
     # instead, the wall's vibration under its share of the contact load made it move 16 % too
     # far at cfl 0.4 and 5.5 % at 0.2 (a ratchet).
