@@ -294,7 +294,7 @@ def describe(sim) -> str:
                         for block in sim.structure.bodies if block.substeps > 1)
     return (f"{scene.name}: {sim.point_count} points, {sim.steps} steps of {sim.dt:.4g} s{subcycled}, "
             f"{scene.numerics.dtype}{describe_relaxation(scene)}{describe_corners(sim.structure)}"
-            f"{describe_stress_substeps(scene)}")
+            f"{describe_structure_hold(sim.structure)}{describe_stress_substeps(scene)}")
 
 
 def describe_relaxation(scene) -> str:
@@ -325,6 +325,18 @@ def describe_corners(structure) -> str:
     radii = ", ".join(f"{block.name} {1e3 * float(corner_radius(np.asarray(block.outline), structure.layout.cell, cells)):.3g} mm"
                       for block in outlined)
     return f", corner radius {cells:g} cell{'' if cells == 1.0 else 's'} ({radii})"
+
+
+def describe_structure_hold(structure) -> str:
+    """', structures hold the nodes where they have mass (numerics.structure_hold = "mass")'
+    when the scene has structures (`bodies.held_structures`), '' otherwise: the hold moves a
+    structure's result by up to ten times (docs/convergence.md), so it is said with the run."""
+    from jaxmpm.physics.bodies import held_structures
+
+    if not held_structures(structure):
+        return ""
+    where = {"mass": "where they have mass", "outline": "whose cell meets their outline"}[structure.structure_hold]
+    return f', structures hold the nodes {where} (numerics.structure_hold = "{structure.structure_hold}")'
 
 
 def describe_stress_substeps(scene) -> str:

@@ -510,10 +510,11 @@ def test_numerics_corner_radius_sets_the_rounding_and_zero_keeps_the_corners_sha
     assert "numerics.corner_radius = -1.0" in str(error.value) and str(error.value).count(". ") == 0
 
 
-def test_the_check_command_states_the_corner_radius_of_prescribed_bodies_and_the_stress_substeps(tmp_path, capsys):
+def test_the_check_command_states_the_corner_radius_the_structure_hold_and_the_stress_substeps(tmp_path, capsys):
     # The rounding moves a pile's resistance by several per cent, so `jaxmpm check` (and run)
     # state it beside the relaxation: in cells and, per body, in mm after the cap of a quarter
-    # of the body's width (the punch is 0.06 m wide: at most 15 mm; the cell is 0.02 m).
+    # of the body's width (the punch is 0.06 m wide: at most 15 mm; the cell is 0.02 m). The
+    # structure hold, which moves a structure's result more, is stated too.
     from jaxmpm.cli import main
 
     path = tmp_path / "punch.toml"
@@ -525,6 +526,9 @@ def test_the_check_command_states_the_corner_radius_of_prescribed_bodies_and_the
     assert "corner radius 1 cell (punch 15 mm)" in said["1"]
     assert "corner radius 0.5 cells (punch 10 mm)" in said["0.5"]
     assert "corners sharp (corner radius 0)" in said["0"]
+    assert 'structures hold the nodes where they have mass (numerics.structure_hold = "mass")' in said["1"]
+    assert main(["check", str(path), "--quick", "--set", "numerics.structure_hold=outline"]) == 0
+    assert 'whose cell meets their outline (numerics.structure_hold = "outline")' in capsys.readouterr().out
     assert "substeps" not in said["1"]
     assert main(["check", str(path), "--quick", "--set", "numerics.stress_substeps=4"]) == 0
     assert "stress update in 4 substeps" in capsys.readouterr().out
