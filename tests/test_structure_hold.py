@@ -1,4 +1,4 @@
-"""numerics.structure_hold: the nodes at which a prescribed or rigid body holds the soil.
+"""numerics.structure_hold: the nodes at which a structure (prescribed, rigid or elastic) holds the soil.
 
 Sources: the separating-axis theorem for two convex polygons (a square and the outline are
 apart exactly when their projections on one of their edge normals do not overlap), checked
