@@ -65,8 +65,8 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
 from jaxmpm.physics.bodies import (
-    Grid, held_by_outline, held_structures, impose_body_motions, keep_points_outside, move_kinematic_bodies, node_positions, normal_cones,
-    prescribed_outline_normals, received_impulses,
+    Grid, held_by_outline, held_structures, impose_body_motions, keep_points_outside, move_kinematic_bodies,
+    node_positions, normal_cones, prescribed_outline_normals, received_impulses,
 )
 from jaxmpm.physics.contact import Interface, apply_interfaces, normals_of
 from jaxmpm.physics.subcycling import alone, correct, predict, put_back, subcycled_blocks
