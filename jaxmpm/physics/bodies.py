@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmpm.physics.contact import apply_interfaces, cross, safe_norm, unit
+from jaxmpm.physics.contact import apply_interfaces, bounding_fields, cross, safe_norm, unit
 
 OUTLINE_RESOLUTION = 1e-9    # of an outline's longest edge: nearer than that, a position counts as on it
 TIED_OPPOSITE = 1e-3         # |sum of the tied edges' normals| below this: opposite faces (mid-plane of a
@@ -456,7 +456,7 @@ def held_structures(structure):
     with them (`held_by_outline`): prescribed and rigid bodies, and free bodies whose outline
     bounds a contact's normal (`contact.Interface.bounded_by`: elastic structures), each of
     convex outline."""
-    bounding = {interface.bounded_by for interface in structure.interfaces if interface.bounded_by is not None}
+    bounding = bounding_fields(structure.interfaces)
     return tuple(block for block in structure.bodies
                  if block.outline is not None and (block.kinematics in KINDS or block.field in bounding))
 
@@ -640,7 +640,7 @@ def normal_cones(structure, state, positions):
     bounds the normal of a contact (`contact.Interface.bounded_by`), from its outline at the
     state's time (`outline_now`), its corners rounded as a prescribed body's are
     (`corner_radius`) and its edges that are no surface left out."""
-    fields = {interface.bounded_by for interface in structure.interfaces if interface.bounded_by is not None}
+    fields = bounding_fields(structure.interfaces)
     cones = {}
     for block in structure.bodies:
         if block.field not in fields or block.outline is None:

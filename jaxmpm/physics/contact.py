@@ -85,6 +85,11 @@ class Interface:
     bounded_by: int | None = None
 
 
+def bounding_fields(interfaces):
+    """The fields whose outline bounds some contact's normal (`Interface.bounded_by`)."""
+    return {interface.bounded_by for interface in interfaces if interface.bounded_by is not None}
+
+
 def safe_norm(vectors):
     """|v| over the last axis (length 2), with a zero (not NaN) gradient at v = 0."""
     squares = vectors[..., 0] * vectors[..., 0] + vectors[..., 1] * vectors[..., 1]

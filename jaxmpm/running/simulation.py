@@ -28,7 +28,7 @@ from jaxmpm.running.budget import check_memory
 from jaxmpm.errors import SceneError
 from jaxmpm.physics.grid import GridLayout
 from jaxmpm.physics.initial_stress import geostatic_stress, jaky_k0, thickness_above
-from jaxmpm.physics.contact import Interface
+from jaxmpm.physics.contact import Interface, bounding_fields
 from jaxmpm.kernels.xla_options import compiler_options, jit_with_options
 from jaxmpm.keys import is_concrete
 from jaxmpm.materials.base import material_parameters
@@ -189,7 +189,7 @@ class Simulation:
             self.seeds = padded(self.seeds, self.mesh.devices.size)
         self.time = np.arange(self.steps + 1) * self.dt
         field, fields, interfaces = velocity_fields(scene)
-        bounding = {interface.bounded_by for interface in interfaces}
+        bounding = bounding_fields(interfaces)
         memory = transfer_memory(scene.transfer, scene.numerics.flip, scene.numerics.relaxation, self.dt,
                                  slowest_crossing_time(scene))
         blocks = tuple(
