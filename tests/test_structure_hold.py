@@ -145,3 +145,28 @@ def test_an_outline_hold_gives_the_soil_only_the_nodes_whose_cell_meets_the_stru
 def test_an_unknown_structure_hold_is_one_clear_error():
     with pytest.raises(SceneError, match=r"^numerics\.structure_hold = 'nodes' is not one of 'mass', 'outline'\.$"):
         Scene.from_toml(FOOTING.replace('dtype = "float64"', 'dtype = "float64"\nstructure_hold = "nodes"'))
+
+
+def test_gradients_through_the_outline_hold_match_central_differences():
+    # The outline hold is a mask from a separating-axis test: it adds no singular point, and the
+    # rigid body's solve and the contact under it must give the derivatives of what they
+    # compute. A rigid footing set on yielding sand under gravity tilted by 0.1 rad, so that it
+    # sinks and slides in 30 steps; the loss reads both. Reverse mode against central
+    # differences (the same check as the default hold's in tests/test_contact.py), with a
+    # relative step of 1e-4: the loss moves by only 1e-7 of itself per unit of the contact's
+    # friction, and at 1e-6 the differences carry the run's round-off (AD 9.32842e-8 against
+    # 9.32842e-8 / 9.32862e-8 / 9.31644e-8 at steps of 1e-3 / 1e-4 / 1e-6).
+    from tests.scenes import reverse_mode_against_central_differences
+
+    text = (FOOTING.replace('dtype = "float64"', 'dtype = "float64"\nstructure_hold = "outline"')
+            .replace('[scene]', '[scene]\ngravity = [0.979, -9.760]')
+            .replace('kinematics = { type = "prescribed", velocity = [0.0, -0.05] }', 'kinematics = { type = "rigid" }')
+            .replace('model = "linear_elastic"\ndensity = 1800.0', 'model = "drucker_prager"\nfriction_angle = 30.0\ndensity = 1800.0')
+            .replace('kind = "reaction"\nbody = "footing"', 'kind = "displacement"\nat = [0.3, 0.175]'))
+    sim = Simulation(Scene.from_toml(text))
+    assert sim.structure.structure_hold == "outline"
+    reverse_mode_against_central_differences(sim, lambda probes: probes["push"][-1, 1] + 0.3 * probes["push"][-1, 0], [
+        ("sand.young", 5.0e6, ("materials", "sand", "young")),
+        ("sand.friction_angle", 30.0, ("materials", "sand", "friction_angle")),
+        ("sand/footing.friction", 0.5, ("contacts", "sand/footing", "friction")),
+    ], rel=1e-4, relative_step=1e-4)
