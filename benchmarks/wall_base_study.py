@@ -1,0 +1,132 @@
+"""How a rigid structure bears on a deformable base, under each structure hold and shape.
+
+    python benchmarks/wall_base_study.py shift      # the calibration twin with its grid lines moved
+    python benchmarks/wall_base_study.py rocking    # a rigid block tilted on an elastic layer
+
+shift: the wall top's x displacement [mm] of examples/calibrate_wall_scene.toml at 0.3 s
+(cfl 0.4 and 0.2) with the wall and the backfill moved 0.3 cell along x (the backfill 0.3 cell
+narrower), with the foundation 0.3 cell deeper (the grid's origin moved down with it), and
+with both: the same wall on the same sand, with its faces off the grid lines. How far the
+answer moves is a measure of the discretisation error at that cell that costs no refinement.
+
+rocking: the twin's wall (0.075 x 0.35 m, rigid, 2400 kg/m^3) standing on a 0.15 m layer of
+linear-elastic sand (E = 2 MPa, nu = 0.3) over a fixed base, gravity tilted 2 degrees, local
+damping 0.3; the wall's rotation [mrad] averaged over 0.4-0.6 s, against a rigid strip
+footing on an elastic half-space (Muskhelishvili; Johnson, Contact Mechanics, 1985, sec. 5.8):
+M = pi E' a^2 theta / 4, with E' = E / (1 - nu^2), a the half-width, and M the overturning
+moment about the base's centre, m g sin(2 deg) times the centre's height, taken less its
+weight's moment m g cos(2 deg) times the centre's height times theta as the wall leans
+(theta = M / (pi E' a^2 / 4 - m g h_c)). The layer's finite depth (four half-widths) makes the
+true value somewhat smaller than the half-space's. A study, not a test: it prints markdown tables.
+"""
+
+import math
+import sys
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+import jaxmpm  # noqa: E402
+from jaxmpm.scene.files import read_scene_file  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+TWIN = ROOT / "examples" / "calibrate_wall_scene.toml"
+SHIFT = 0.3                       # of a cell
+TILT = math.radians(2.0)
+
+
+def body(data, name):
+    return next(values for values in data["bodies"] if values["name"] == name)
+
+
+def shifted_twin(along_x: bool, along_y: bool) -> jaxmpm.Scene:
+    """The twin with the wall and backfill moved SHIFT cells along x (the backfill that much
+    narrower) and/or the foundation SHIFT cells deeper with the grid's origin."""
+    data = read_scene_file(TWIN)
+    step = SHIFT * data["grid"]["cell"]
+    if along_x:
+        for name in ("wall", "backfill"):
+            (x0, y0), (x1, y1) = body(data, name)["region"]["rectangle"]
+            body(data, name)["region"]["rectangle"] = [[x0 + step, y0], [x1 if name == "backfill" else x1 + step, y1]]
+        probe = next(values for values in data["probes"] if values["name"] == "wall_top")
+        probe["at"] = [probe["at"][0] + step, probe["at"][1]]
+    if along_y:
+        (x0, y0), (x1, y1) = body(data, "foundation")["region"]["rectangle"]
+        body(data, "foundation")["region"]["rectangle"] = [[x0, y0 - step], [x1, y1]]
+        data["grid"]["origin"] = [data["grid"]["origin"][0], data["grid"]["origin"][1] - step]
+        data["grid"]["size"] = [data["grid"]["size"][0], data["grid"]["size"][1] + data["grid"]["cell"]]
+    return jaxmpm.Scene.from_dict(data)
+
+
+def wall_top_x(scene, hold, cfl, at=0.3):
+    scene = (scene.with_value("scene.duration", at).with_value("scene.cfl", cfl)
+             .with_value("numerics.structure_hold", hold))
+    result = jaxmpm.Simulation(scene).run(progress=False)
+    return 1e3 * float(np.asarray(result.probes["wall_top"])[-1, 0])
+
+
+def shift_study():
+    print("| geometry | hold | wall top x at 0.3 s, cfl 0.4 [mm] | cfl 0.2 [mm] | change |")
+    print("|---|---|---|---|---|")
+    for label, along_x, along_y in (("on the grid lines (shipped)", False, False), ("wall 0.3 cell along x", True, False),
+                                    ("foundation 0.3 cell deeper", False, True), ("both", True, True)):
+        scene = shifted_twin(along_x, along_y)
+        for hold in ("mass", "outline"):
+            coarse, fine = wall_top_x(scene, hold, 0.4), wall_top_x(scene, hold, 0.2)
+            print(f"| {label} | {hold} | {coarse:.2f} | {fine:.2f} | {100 * (fine / coarse - 1):+.1f} % |", flush=True)
+
+
+def rocking_scene(shape: str, hold: str, refinement: int, cfl: float) -> jaxmpm.Scene:
+    data = read_scene_file(TWIN)
+    data["scene"].update(gravity=[9.81 * math.sin(TILT), -9.81 * math.cos(TILT)], duration=0.6, cfl=cfl)
+    data["grid"]["cell"] /= refinement
+    data["numerics"].update(shape=shape, structure_hold=hold, damping=0.3)
+    data["materials"]["layer"] = {"model": "linear_elastic", "density": 1800.0, "young": 2.0e6, "poisson": 0.3}
+    foundation = body(data, "foundation")
+    foundation["material"] = "layer"
+    foundation["initial_stress"] = {"geostatic": {"k0": 0.3 / 0.7}}
+    data["bodies"] = [foundation, body(data, "wall")]
+    data["contacts"] = [{"pair": ["foundation", "wall"], "friction": 0.4}]
+    data["probes"] = [{"name": "top", "kind": "displacement", "at": [0.4875, 0.5]},
+                      {"name": "base", "kind": "displacement", "at": [0.4875, 0.156]}]
+    return jaxmpm.Scene.from_dict(data)
+
+
+def strip_footing_rotation() -> float:
+    """theta [rad] of the rigid strip on an elastic half-space (module docstring)."""
+    width, height, density = 0.075, 0.35, 2400.0
+    mass, centre = density * width * height, 0.5 * height
+    plane_modulus, half = 2.0e6 / (1.0 - 0.3 ** 2), 0.5 * width
+    moment = mass * 9.81 * math.sin(TILT) * centre
+    return moment / (math.pi * plane_modulus * half ** 2 / 4.0 - mass * 9.81 * math.cos(TILT) * centre)
+
+
+def rocking_rotation(shape, hold, refinement, cfl):
+    result = jaxmpm.Simulation(rocking_scene(shape, hold, refinement, cfl)).run(progress=False)
+    time = np.asarray(result.time)
+    top, base = np.asarray(result.probes["top"]), np.asarray(result.probes["base"])
+    late = time >= 0.4
+    return float(np.mean(top[late, 0] - base[late, 0])) / (0.5 - 0.156)
+
+
+def rocking_study():
+    reference = strip_footing_rotation()
+    print(f"rigid strip on an elastic half-space: {1e3 * reference:.3f} mrad")
+    print("| shape | hold | cell h | h/2 | h/4 | h at cfl 0.2 |")
+    print("|---|---|---|---|---|---|")
+    for shape in ("bspline2", "linear"):
+        for hold in ("mass", "outline"):
+            values = [rocking_rotation(shape, hold, refinement, 0.4) for refinement in (1, 2, 4)]
+            values.append(rocking_rotation(shape, hold, 1, 0.2))
+            print(f"| {shape} | {hold} | " + " | ".join(f"{1e3 * value:.2f}" for value in values) + " |", flush=True)
+
+
+if __name__ == "__main__":
+    studies = {"shift": shift_study, "rocking": rocking_study}
+    if len(sys.argv) != 2 or sys.argv[1] not in studies:
+        sys.exit(f"usage: python {Path(__file__).name} {' | '.join(studies)}")
+    studies[sys.argv[1]]()
