@@ -11,8 +11,11 @@ answer moves is a measure of the discretisation error at that cell that costs no
 
 rocking: the twin's wall (0.075 x 0.35 m, rigid, 2400 kg/m^3) standing on a 0.15 m layer of
 linear-elastic sand (E = 2 MPa, nu = 0.3) over a fixed base, gravity tilted 2 degrees, local
-damping 0.3; the wall's rotation [mrad] averaged over 0.4-0.6 s, against a rigid strip
-footing on an elastic half-space (Muskhelishvili; Johnson, Contact Mechanics, 1985, sec. 5.8):
+damping 0.3, for 1.5 s; the wall's rotation [mrad] averaged over 1.2-1.5 s at h and h/2 (cfl 0.4),
+at h and cfl 0.2, and at h with the layer 0.3 cell deeper (the base off the grid lines); then,
+with a base that cannot slip (friction 10), the rotation at 0.5 / 1.0 / 1.5 s. Against a rigid strip
+footing on an elastic half-space in plane strain (the flat punch turned by theta: pressure
+p(x) = E' theta x / (2 sqrt(a^2 - x^2)); K. L. Johnson, Contact Mechanics, 1985, chapter 2):
 M = pi E' a^2 theta / 4, with E' = E / (1 - nu^2), a the half-width, and M the overturning
 moment about the base's centre, m g sin(2 deg) times the centre's height, taken less its
 weight's moment m g cos(2 deg) times the centre's height times theta as the wall leans
@@ -37,6 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 TWIN = ROOT / "examples" / "calibrate_wall_scene.toml"
 SHIFT = 0.3                       # of a cell
 TILT = math.radians(2.0)
+DURATION, SETTLED = 1.5, 1.2       # the rocking run [s], and the time from which it has settled
 
 
 def body(data, name):
@@ -80,15 +84,23 @@ def shift_study():
             print(f"| {label} | {hold} | {coarse:.2f} | {fine:.2f} | {100 * (fine / coarse - 1):+.1f} % |", flush=True)
 
 
-def rocking_scene(shape: str, hold: str, refinement: int, cfl: float) -> jaxmpm.Scene:
+def rocking_scene(shape: str, hold: str, refinement: int, cfl: float, off_grid: bool = False) -> jaxmpm.Scene:
+    """The rocking block (module docstring); off_grid: the layer SHIFT cells deeper with the
+    grid's origin, so that the block's base lies off the grid lines."""
     data = read_scene_file(TWIN)
-    data["scene"].update(gravity=[9.81 * math.sin(TILT), -9.81 * math.cos(TILT)], duration=0.6, cfl=cfl)
+    data["scene"].update(gravity=[9.81 * math.sin(TILT), -9.81 * math.cos(TILT)], duration=DURATION, cfl=cfl)
     data["grid"]["cell"] /= refinement
     data["numerics"].update(shape=shape, structure_hold=hold, damping=0.3)
     data["materials"]["layer"] = {"model": "linear_elastic", "density": 1800.0, "young": 2.0e6, "poisson": 0.3}
     foundation = body(data, "foundation")
     foundation["material"] = "layer"
     foundation["initial_stress"] = {"geostatic": {"k0": 0.3 / 0.7}}
+    if off_grid:
+        step = SHIFT * data["grid"]["cell"]
+        (x0, y0), (x1, y1) = foundation["region"]["rectangle"]
+        foundation["region"]["rectangle"] = [[x0, y0 - step], [x1, y1]]
+        data["grid"]["origin"] = [data["grid"]["origin"][0], data["grid"]["origin"][1] - step]
+        data["grid"]["size"] = [data["grid"]["size"][0], data["grid"]["size"][1] + data["grid"]["cell"]]
     data["bodies"] = [foundation, body(data, "wall")]
     data["contacts"] = [{"pair": ["foundation", "wall"], "friction": 0.4}]
     data["probes"] = [{"name": "top", "kind": "displacement", "at": [0.4875, 0.5]},
@@ -105,24 +117,41 @@ def strip_footing_rotation() -> float:
     return moment / (math.pi * plane_modulus * half ** 2 / 4.0 - mass * 9.81 * math.cos(TILT) * centre)
 
 
-def rocking_rotation(shape, hold, refinement, cfl):
-    result = jaxmpm.Simulation(rocking_scene(shape, hold, refinement, cfl)).run(progress=False)
-    time = np.asarray(result.time)
+def rocking_history(shape, hold, refinement, cfl, off_grid=False, friction=None):
+    """(times, the block's rotation [rad]) over the rocking run."""
+    scene = rocking_scene(shape, hold, refinement, cfl, off_grid)
+    if friction is not None:
+        scene = scene.with_value("contacts.foundation/wall.friction", friction)
+    result = jaxmpm.Simulation(scene).run(progress=False)
     top, base = np.asarray(result.probes["top"]), np.asarray(result.probes["base"])
-    late = time >= 0.4
-    return float(np.mean(top[late, 0] - base[late, 0])) / (0.5 - 0.156)
+    return np.asarray(result.time), (top[:, 0] - base[:, 0]) / (0.5 - 0.156)
+
+
+def settled_rotation(*args, **kwargs):
+    time, rotation = rocking_history(*args, **kwargs)
+    return float(np.mean(rotation[time >= SETTLED]))
 
 
 def rocking_study():
-    reference = strip_footing_rotation()
-    print(f"rigid strip on an elastic half-space: {1e3 * reference:.3f} mrad")
-    print("| shape | hold | cell h | h/2 | h/4 | h at cfl 0.2 |")
+    print(f"rigid strip on an elastic half-space: {1e3 * strip_footing_rotation():.3f} mrad")
+    print(f"\nfriction 0.4, the rotation's mean over {SETTLED}-{DURATION} s [mrad]:\n")
+    print("| shape | hold | cell h | h/2 | h at cfl 0.2 | h, the base 0.3 cell off the grid lines |")
     print("|---|---|---|---|---|---|")
     for shape in ("bspline2", "linear"):
         for hold in ("mass", "outline"):
-            values = [rocking_rotation(shape, hold, refinement, 0.4) for refinement in (1, 2, 4)]
-            values.append(rocking_rotation(shape, hold, 1, 0.2))
+            values = [settled_rotation(shape, hold, 1, 0.4), settled_rotation(shape, hold, 2, 0.4),
+                      settled_rotation(shape, hold, 1, 0.2), settled_rotation(shape, hold, 1, 0.4, off_grid=True)]
             print(f"| {shape} | {hold} | " + " | ".join(f"{1e3 * value:.2f}" for value in values) + " |", flush=True)
+    print("\nfriction 10 (the base cannot slip), cell h, the rotation at 0.5 / 1.0 / 1.5 s [mrad]:\n")
+    print("| shape | hold | cfl 0.4 | cfl 0.2 |")
+    print("|---|---|---|---|")
+    for shape in ("bspline2", "linear"):
+        for hold in ("mass", "outline"):
+            cells = []
+            for cfl in (0.4, 0.2):
+                time, rotation = rocking_history(shape, hold, 1, cfl, friction=10.0)
+                cells.append(" / ".join(f"{1e3 * rotation[np.argmin(np.abs(time - at))]:.2f}" for at in (0.5, 1.0, 1.5)))
+            print(f"| {shape} | {hold} | {cells[0]} | {cells[1]} |", flush=True)
 
 
 if __name__ == "__main__":
