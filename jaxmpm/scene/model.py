@@ -113,23 +113,23 @@ class Scene:
             notes.append(f"materials.{name} is viscoplastic with exponent {exponent:g}, and one stress update a step "
                          "(numerics.stress_substeps = 1) has a first-order error of its own that halving dt can hide "
                          "(2-5 % on the retaining wall example, which uses 4): check a result with --refine stress")
-        if self.holds_structures_to_outline_with_splines:
-            notes.append("numerics.structure_hold = 'outline' with shape = 'bspline2' is a study option: a rigid block "
-                         "resting on an elastic layer turned 2.5 times as far as the elastic solution under it and, "
-                         "on a base that could not slip, crept at a rate set by the step (docs/convergence.md, "
-                         "\"A rigid base on deformable soil\"): prefer the default hold, or shape = 'linear'")
+        if self.holds_structures_to_outline:
+            notes.append("numerics.structure_hold = 'outline' is a study option: a rigid block resting on an elastic "
+                         "layer turned 2.5 times as far as the elastic solution under it with quadratic B-splines, "
+                         "and against its load with its sides half a cell off the nodes (docs/convergence.md, "
+                         "\"A rigid base on deformable soil\"): prefer the default hold")
         if self.dt is not None and self.cfl != DEFAULT_CFL:
             notes.append(f"scene.dt = {self.dt:g} s is given, so scene.cfl = {self.cfl:g} is not used: that dt is "
                          f"{self.dt / self.stable_dt:.3g} of the stable limit {self.stable_dt:.4g} s")
         return tuple(notes)
 
     @property
-    def holds_structures_to_outline_with_splines(self) -> bool:
+    def holds_structures_to_outline(self) -> bool:
         """Whether structures (prescribed or rigid bodies, or the bodies of a contact pair) hold
-        the soil only at the nodes whose cell meets their outline while the shape functions are
-        quadratic B-splines: a combination that measured badly on a rigid base (docs/convergence.md)."""
+        the soil only at the nodes whose cell meets their outline: an option that measured badly
+        on a rigid base (docs/convergence.md, "A rigid base on deformable soil")."""
         structures = self.contacts or any(body.kinematics.type in ("prescribed", "rigid") for body in self.bodies)
-        return bool(structures) and self.numerics.structure_hold == "outline" and self.numerics.shape == "bspline2"
+        return bool(structures) and self.numerics.structure_hold == "outline"
 
     @property
     def filters_flowing_soil_every_step(self) -> bool:

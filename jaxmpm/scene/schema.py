@@ -87,9 +87,9 @@ NUMERICS = Section((
         "node where its points have mass, up to a cell and a quarter beyond its outline with quadratic B-splines "
         "(the multi-velocity-field rule), or 'outline', only the nodes whose cell (the square of side h centred "
         "on the node) meets its outline; a structure held by its base, such as a free wall, moves with the cell "
-        "under 'mass' (its displacement doubling at each halving with quadratic B-splines), and with quadratic "
-        "B-splines 'outline' makes a rigid base 2.5 times too soft and lets it creep (docs/convergence.md, "
-        "\"A rigid base on deformable soil\"): a study option",
+        "under 'mass' (its displacement doubling at each halving with quadratic B-splines); 'outline' is a study "
+        "option: a rigid base under it is 2.5 times too soft with quadratic B-splines, and walks against its "
+        "load with its sides half a cell off the nodes (docs/convergence.md, \"A rigid base on deformable soil\")",
         default=DEFAULT_STRUCTURE_HOLD, choices=STRUCTURE_HOLDS),
     Key("damping", "float", "local (Cundall) damping coefficient: each node's force is reduced by damping "
         "|f| sign(v); for quasi-static settling, never set by a preset", default=0.0, low=0.0, high=1.0,
