@@ -15,7 +15,8 @@ time step as the fit's), and the check is `numerical_check=("relaxation",)`; wit
 `--refinement stress` at the stress substeps doubled (`numerical_check=("stress",)`); with
 `--refinement cell` at half the cell (and the step its cfl gives there).
 `--stress-substeps K` sets the fit's own substeps (default 1); `--structure-hold outline` runs
-the fit and the observations under `numerics.structure_hold = "outline"`. A study, not a test: about
+the fit and the observations under `numerics.structure_hold = "outline"`; `--shape linear` with linear
+shape functions instead of the twin's quadratic B-splines. A study, not a test: about
 10 minutes per relaxation on 2 cores at one substep.
 """
 
@@ -40,17 +41,19 @@ from calibration_study import WALL_FIT, WALL_SCENE, WALL_START, WALL_TRUTH, wall
 from jaxmpm.running.refinement import refined_scene  # noqa: E402
 
 
-def study(relaxation, refinement="dt", stress_substeps=1, structure_hold="mass"):
+def study(relaxation, refinement="dt", stress_substeps=1, structure_hold="mass", shape=None):
     scene = (jaxmpm.load_scene(WALL_SCENE).with_value("numerics.relaxation", relaxation)
              .with_value("numerics.stress_substeps", stress_substeps)
              .with_value("numerics.structure_hold", structure_hold))
+    if shape is not None:
+        scene = scene.with_value("numerics.shape", shape)
     coarse = jaxmpm.Simulation(scene)
     fine = jaxmpm.Simulation(refined_scene(scene, refinement))
     made = {"dt": f"{fine.steps} steps at cfl {scene.cfl / 2:g}", "cell": f"cell {fine.scene.grid.cell:g} m",
             "relaxation": f"relaxation {2 * relaxation:g}",
             "stress": f"{2 * stress_substeps} stress substeps"}[refinement]
     print(f"\n### relaxation = {relaxation:g}, {stress_substeps} stress substep(s), structure hold "
-          f"{structure_hold!r}: {coarse.point_count} points, "
+          f"{structure_hold!r}, shape {scene.numerics.shape!r}: {coarse.point_count} points, "
           f"{coarse.steps} steps at cfl {scene.cfl:g} (observations made at {made})\n")
     print(f"| parameter | truth | fit at cfl {scene.cfl:g}, relaxation {relaxation:g} | bias | predicted shift "
           f"({refinement} refined) | bias / noise standard error (2 %) |")
@@ -75,10 +78,12 @@ def main():
     parser.add_argument("--stress-substeps", type=int, default=1, help="the fit's numerics.stress_substeps")
     parser.add_argument("--structure-hold", choices=("mass", "outline"), default="mass",
                         help="numerics.structure_hold of the fit and the observations (default: mass)")
+    parser.add_argument("--shape", choices=("linear", "gimp", "bspline2"), default=None,
+                        help="numerics.shape of the fit and the observations (default: the twin's, bspline2)")
     arguments = parser.parse_args()
     print(f"jaxmpm calibration numerical error, {time.strftime('%Y-%m-%d')}, {jax.devices()[0].device_kind}")
     for relaxation in arguments.relaxation:
-        study(relaxation, arguments.refinement, arguments.stress_substeps, arguments.structure_hold)
+        study(relaxation, arguments.refinement, arguments.stress_substeps, arguments.structure_hold, arguments.shape)
         sys.stdout.flush()
 
 
