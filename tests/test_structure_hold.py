@@ -173,10 +173,10 @@ def test_gradients_through_the_outline_hold_match_central_differences():
             .replace('[scene]', '[scene]\ngravity = [0.979, -9.760]')
             .replace('kinematics = { type = "prescribed", velocity = [0.0, -0.05] }', 'kinematics = { type = "rigid" }')
             .replace('model = "linear_elastic"\ndensity = 1800.0', 'model = "drucker_prager"\nfriction_angle = 30.0\ndensity = 1800.0')
-            .replace('kind = "reaction"\nbody = "footing"', 'kind = "displacement"\nat = [0.3, 0.175]'))
+            .replace('name = "push"\nkind = "reaction"\nbody = "footing"', 'name = "centre"\nkind = "displacement"\nat = [0.3, 0.175]'))
     sim = Simulation(Scene.from_toml(text))
     assert sim.structure.structure_hold == "outline"
-    reverse_mode_against_central_differences(sim, lambda probes: probes["push"][-1, 1] + 0.3 * probes["push"][-1, 0], [
+    reverse_mode_against_central_differences(sim, lambda probes: probes["centre"][-1, 1] + 0.3 * probes["centre"][-1, 0], [
         ("sand.young", 5.0e6, ("materials", "sand", "young")),
         ("sand.friction_angle", 30.0, ("materials", "sand", "friction_angle")),
         ("sand/footing.friction", 0.5, ("contacts", "sand/footing", "friction")),
