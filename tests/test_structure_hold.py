@@ -144,7 +144,7 @@ def test_an_outline_hold_gives_the_soil_only_the_nodes_whose_cell_meets_the_stru
 
 def test_the_outline_hold_comes_with_a_note():
     # benchmarks/wall_base_study.py: a rigid block on an elastic layer under the outline hold
-    # turned 2.5 times as far as the elastic solution with quadratic B-splines, and against its
+    # turned 2.6 times as far as the elastic solution with quadratic B-splines, and against its
     # load with its sides half a cell off the nodes (either shape); the default hold did not.
     outline = FOOTING.replace('dtype = "float64"', 'dtype = "float64"\nstructure_hold = "outline"')
     for text in (outline, outline.replace('shape = "bspline2"', 'shape = "linear"')):

@@ -115,7 +115,7 @@ class Scene:
                          "(2-5 % on the retaining wall example, which uses 4): check a result with --refine stress")
         if self.holds_structures_to_outline:
             notes.append("numerics.structure_hold = 'outline' is a study option: a rigid block resting on an elastic "
-                         "layer turned 2.5 times as far as the elastic solution under it with quadratic B-splines, "
+                         "layer turned 2.6 times as far as the elastic solution under it with quadratic B-splines, "
                          "and against its load with its sides half a cell off the nodes (docs/convergence.md, "
                          "\"A rigid base on deformable soil\"): prefer the default hold")
         if self.dt is not None and self.cfl != DEFAULT_CFL:

@@ -88,7 +88,7 @@ NUMERICS = Section((
         "(the multi-velocity-field rule), or 'outline', only the nodes whose cell (the square of side h centred "
         "on the node) meets its outline; a structure held by its base, such as a free wall, moves with the cell "
         "under 'mass' (its displacement doubling at each halving with quadratic B-splines); 'outline' is a study "
-        "option: a rigid base under it is 2.5 times too soft with quadratic B-splines, and walks against its "
+        "option: a rigid base under it is 2.6 times too soft with quadratic B-splines, and walks against its "
         "load with its sides half a cell off the nodes (docs/convergence.md, \"A rigid base on deformable soil\")",
         default=DEFAULT_STRUCTURE_HOLD, choices=STRUCTURE_HOLDS),
     Key("damping", "float", "local (Cundall) damping coefficient: each node's force is reduced by damping "
