@@ -48,6 +48,16 @@ def body(data, name):
     return next(values for values in data["bodies"] if values["name"] == name)
 
 
+def deepen_foundation(data, cells):
+    """The foundation `cells` cells deeper, the grid's origin moved down with it (the grid one
+    cell taller), in a scene file's dict: the bodies stay where they were, the grid lines move."""
+    step = cells * data["grid"]["cell"]
+    (x0, y0), (x1, y1) = body(data, "foundation")["region"]["rectangle"]
+    body(data, "foundation")["region"]["rectangle"] = [[x0, y0 - step], [x1, y1]]
+    data["grid"]["origin"] = [data["grid"]["origin"][0], data["grid"]["origin"][1] - step]
+    data["grid"]["size"] = [data["grid"]["size"][0], data["grid"]["size"][1] + data["grid"]["cell"]]
+
+
 def shifted_twin(along_x: bool, along_y: bool) -> jaxmpm.Scene:
     """The twin with the wall and backfill moved SHIFT cells along x (the backfill that much
     narrower) and/or the foundation SHIFT cells deeper with the grid's origin."""
@@ -60,10 +70,7 @@ def shifted_twin(along_x: bool, along_y: bool) -> jaxmpm.Scene:
         probe = next(values for values in data["probes"] if values["name"] == "wall_top")
         probe["at"] = [probe["at"][0] + step, probe["at"][1]]
     if along_y:
-        (x0, y0), (x1, y1) = body(data, "foundation")["region"]["rectangle"]
-        body(data, "foundation")["region"]["rectangle"] = [[x0, y0 - step], [x1, y1]]
-        data["grid"]["origin"] = [data["grid"]["origin"][0], data["grid"]["origin"][1] - step]
-        data["grid"]["size"] = [data["grid"]["size"][0], data["grid"]["size"][1] + data["grid"]["cell"]]
+        deepen_foundation(data, SHIFT)
     return jaxmpm.Scene.from_dict(data)
 
 
@@ -98,11 +105,7 @@ def rocking_scene(shape: str, hold: str, refinement: int, cfl: float, lower: flo
     foundation["material"] = "layer"
     foundation["initial_stress"] = {"geostatic": {"k0": 0.3 / 0.7}}
     if lower:
-        step = lower * data["grid"]["cell"]
-        (x0, y0), (x1, y1) = foundation["region"]["rectangle"]
-        foundation["region"]["rectangle"] = [[x0, y0 - step], [x1, y1]]
-        data["grid"]["origin"] = [data["grid"]["origin"][0], data["grid"]["origin"][1] - step]
-        data["grid"]["size"] = [data["grid"]["size"][0], data["grid"]["size"][1] + data["grid"]["cell"]]
+        deepen_foundation(data, lower)
     wall = body(data, "wall")
     (x0, y0), (x1, y1) = wall["region"]["rectangle"]
     across = along * data["grid"]["cell"]
