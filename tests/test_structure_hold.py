@@ -154,7 +154,7 @@ def test_the_outline_hold_comes_with_a_note():
 
 
 def test_an_unknown_structure_hold_is_one_clear_error():
-    with pytest.raises(SceneError, match=r"^numerics\.structure_hold = 'nodes' is not one of 'mass', 'outline'\.$"):
+    with pytest.raises(SceneError, match=r"^numerics\.structure_hold = 'nodes' is not one of 'mass', 'outline', 'points'\.$"):
         Scene.from_toml(FOOTING.replace('dtype = "float64"', 'dtype = "float64"\nstructure_hold = "nodes"'))
 
 

@@ -386,6 +386,25 @@ def convex_outline(vertices):
     return tuple(map(tuple, corners.tolist()))
 
 
+def seeded_outline(corners, positions, spacing):
+    """A convex outline (K, 2, counter-clockwise) moved to the body its points make: each edge
+    moved along its outward normal n to the outermost point's square, max_p n . (x_p - a) +
+    (spacing / 2)(|n_x| + |n_y|) from where it was, the corners where the moved edges meet
+    (numpy, at t = 0). The points fill the region on the grid's lattice, so a region whose
+    edges fall between its rows holds a body up to a point spacing smaller: where two bodies
+    meet, the points' squares touch while their regions overlap or part."""
+    corners = np.asarray(corners, float)
+    edges = np.roll(corners, -1, axis=0) - corners
+    normals = np.stack([edges[:, 1], -edges[:, 0]], axis=-1) / np.hypot(edges[:, 0], edges[:, 1])[:, None]
+    reach = 0.5 * spacing * (np.abs(normals[:, 0]) + np.abs(normals[:, 1]))
+    levels = np.max(positions @ normals.T, axis=0) + reach                  # n_e . x on each moved edge
+    moved = []
+    for k in range(len(corners)):          # corner k joins edge k - 1 and edge k
+        system = np.stack([normals[k - 1], normals[k]])
+        moved.append(np.linalg.solve(system, np.array([levels[k - 1], levels[k]])))
+    return tuple(map(tuple, np.asarray(moved).tolist()))
+
+
 def outline_now(block, state, dtype, axisymmetric=False):
     """(K, 2) corners of a body's outline at the state's time: its scene region moved as its
     points moved (`outline_now` of its kind, `elastic_outline_now` for a free body)."""

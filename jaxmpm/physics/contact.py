@@ -53,7 +53,9 @@ empty nodes, zero normals and zero tangential velocity.
 """
 
 import dataclasses
+from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 
 GRAZING_SHARE = 0.05   # a contact's impulse ramps in over the lighter free field's mass share 0 ... this (`grazing_weight`)
@@ -83,6 +85,14 @@ class Interface:
     normal_from: int | None = None
     shared_with: tuple[int, ...] = ()
     bounded_by: int | None = None
+
+
+class PointPush(NamedTuple):
+    """What a contact at the points (`point_contact`) gives the grid in place of a normal: the
+    normal impulse (nx, ny, 2) the free body's points received from the structure over the
+    step, on the free body's field (pointing out of the structure)."""
+
+    impulse: jax.Array
 
 
 def bounding_fields(interfaces):
@@ -177,6 +187,8 @@ def interface_impulse(interface, mass, velocity, normal, friction, occupied):
 
     mass: (F, nx, ny); velocity: (F, nx, ny, 2) trial velocities; normal: (nx, ny, 2) from
     first into second (None for a bonded interface); occupied: (F, nx, ny) bool."""
+    if isinstance(normal, PointPush):
+        return pushed_impulse(interface, mass, velocity, normal, friction, occupied)
     a, b = interface.first, interface.second
     relative = velocity[a] - velocity[b]
     if interface.contact is None:
@@ -195,6 +207,27 @@ def interface_impulse(interface, mass, velocity, normal, friction, occupied):
             reduced = reduced * grazing_weight(mass[a], mass[b], both)
     both = occupied[a] & occupied[b]
     return jnp.where(both[..., None], reduced[..., None] * change, 0.0)
+
+
+def pushed_impulse(interface, mass, velocity, push, friction, occupied):
+    """Impulse on field `first` (nx, ny, 2) of a contact at the points (`point_contact`): the
+    points' normal impulse J_n on the free field, and Coulomb friction at its nodes with J_n
+    as the normal impulse: the free field's velocity relative to the structure's after J_n,
+    u = v_f + J_n / m_f - v_s, loses its part t across n = J_n / |J_n|, all of it while
+    m_f |t| <= mu |J_n| (stick), else mu |J_n| / m_f of it (slide)."""
+    free, other = (interface.second, interface.first) if interface.kinematic_first else (interface.first, interface.second)
+    safe_mass = jnp.where(occupied[free], mass[free], 1.0)
+    normal_impulse = jnp.where(occupied[free][..., None], push.impulse, 0.0)
+    relative = velocity[free] + normal_impulse / safe_mass[..., None] - velocity[other]
+    normal = unit(normal_impulse)
+    tangential = relative - dot(relative, normal)[..., None] * normal
+    slip_speed = safe_norm(tangential)
+    limit = friction * safe_norm(normal_impulse) / safe_mass
+    sliding = slip_speed > limit
+    kept = jnp.where(sliding, limit / jnp.where(sliding, slip_speed, 1.0), 1.0)
+    on_free = normal_impulse - (mass[free] * kept)[..., None] * tangential
+    on_free = jnp.where(occupied[free][..., None], on_free, 0.0)
+    return -on_free if interface.kinematic_first else on_free
 
 
 def grazing_weight(mass_first, mass_second, both):
@@ -226,11 +259,15 @@ def part_share(interface, mass, occupied):
     return jnp.where(total > 0.0, own / jnp.where(total > 0.0, total, 1.0), 1.0)
 
 
-def normals_of(interfaces, mass, mass_gradient, outline_normals=None):
+def normals_of(interfaces, mass, mass_gradient, outline_normals=None, pushes=None):
     """The unit normal (nx, ny, 2) of each interface at the nodes (`interface_normals`), None
-    for a bonded one. They read no velocity, so a step takes them once."""
-    return tuple(None if interface.contact is None else interface_normals(interface, mass, mass_gradient, outline_normals)
-                 for interface in interfaces)
+    for a bonded one, its `PointPush` for a contact at the points (`pushes` {index: PointPush}).
+    They read no velocity, so a step takes them once."""
+    pushes = pushes or {}
+    return tuple(pushes[index] if index in pushes
+                 else None if interface.contact is None
+                 else interface_normals(interface, mass, mass_gradient, outline_normals)
+                 for index, interface in enumerate(interfaces))
 
 
 def apply_interfaces(interfaces, mass, velocity, normals, frictions, occupied):
@@ -244,7 +281,7 @@ def apply_interfaces(interfaces, mass, velocity, normals, frictions, occupied):
     safe_mass = jnp.where(occupied, mass, 1.0)[..., None]
     for interface, normal in zip(interfaces, normals, strict=True):
         impulse = interface_impulse(interface, mass, velocity, normal, frictions.get(interface.contact), occupied)
-        if interface.shared_with:
+        if interface.shared_with and not isinstance(normal, PointPush):
             impulse = impulse * part_share(interface, mass, occupied)[..., None]
         if not interface.kinematic_first:
             velocity = velocity.at[interface.first].add(impulse / safe_mass[interface.first])

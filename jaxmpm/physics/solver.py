@@ -68,7 +68,8 @@ from jaxmpm.physics.bodies import (
     Grid, held_by_outline, held_structures, impose_body_motions, keep_points_outside, move_kinematic_bodies,
     node_positions, normal_cones, prescribed_outline_normals, received_impulses,
 )
-from jaxmpm.physics.contact import Interface, apply_interfaces, normals_of
+from jaxmpm.physics.contact import Interface, PointPush, apply_interfaces, normals_of, unit
+from jaxmpm.physics.point_contact import pushes
 from jaxmpm.physics.subcycling import alone, correct, predict, put_back, subcycled_blocks
 from jaxmpm.physics.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, per_unit_mass, scatter_to_nodes,
@@ -454,7 +455,7 @@ def facing_forces(structure, impulses, normals, dt):
     """{(pair name, (dx, dy)): (2,) force of the pair's first body on its second through the nodes
     whose contact normal n (first into second) has n . (dx, dy) >= cos 45 degrees [N/m]}, for
     each of `structure.facings`: one face of a body, e.g. a wall's back apart from its base."""
-    by_contact = {interface.contact: (impulse, normal)
+    by_contact = {interface.contact: (impulse, pushed_normal(interface, normal))
                   for interface, impulse, normal in zip(structure.interfaces, impulses, normals)
                   if interface.contact is not None}
     forces = {}
@@ -463,6 +464,15 @@ def facing_forces(structure, impulses, normals, dt):
         within = normal[..., 0] * dx + normal[..., 1] * dy >= FACE_COSINE
         forces[(contact, (dx, dy))] = -jnp.sum(jnp.where(within[..., None], impulse, 0.0), axis=(0, 1)) / dt
     return forces
+
+
+def pushed_normal(interface, normal):
+    """An interface's normal from its first field into its second (nx, ny, 2): as given, or
+    from a contact at the points' normal impulse (`contact.PointPush`, on the free field)."""
+    if not isinstance(normal, PointPush):
+        return normal
+    out_of_free = -unit(normal.impulse)
+    return -out_of_free if interface.kinematic_first else out_of_free
 
 
 def transfer_memory(transfer, flip, relaxation, dt, crossing_time):
@@ -555,7 +565,8 @@ def make_step(structure: Structure):
         if structure.structure_hold == "outline" and held_structures(structure):
             occupied = held_by_outline(structure, state, occupied)
         grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, occupied)
-        normals = normals_of(structure.interfaces, nodes.mass, nodes.mass_gradient, contact_outlines(structure, state))
+        normals = normals_of(structure.interfaces, nodes.mass, nodes.mass_gradient, contact_outlines(structure, state),
+                             pushes(params, state, structure, stencil, field))
         velocity_new, motions = impose_body_motions(params, state, structure, grid, frictions, time_new, normals,
                                                     prediction.motions)
         impulses = []

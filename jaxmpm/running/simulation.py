@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from jaxmpm.physics.bodies import convex_outline, joined_edges
+from jaxmpm.physics.bodies import convex_outline, joined_edges, seeded_outline
 from jaxmpm.running.budget import check_memory
 from jaxmpm.errors import SceneError
 from jaxmpm.physics.grid import GridLayout
@@ -276,6 +276,8 @@ class Simulation:
         if outline is None or (body.kinematics.type == "free" and not bounds):
             return None, None, None
         positions = self.seeds.positions[start:stop]
+        if self.scene.numerics.structure_hold == "points" and body.kinematics.type != "free":
+            outline = seeded_outline(outline, positions, self.scene.grid.cell / self.scene.numerics.ppc)
         weights = self.seeds.volumes[start:stop] if body.kinematics.type == "rigid" else np.ones(stop - start)
         centre = weights @ positions / weights.sum()
         arms = None

@@ -274,6 +274,22 @@ def check_contacts(scene):
         if set(contact.pair) in declared:
             raise SceneError(f"{key} = {list(contact.pair)}: these two bodies are already paired.")
         declared.append(set(contact.pair))
+        if scene.numerics.structure_hold == "points":
+            check_pushes_points(scene, key, contact)
+
+
+def check_pushes_points(scene, key, contact):
+    """Under numerics.structure_hold = "points" a prescribed or rigid body pushes the points of
+    the body it meets out of its outline, which must be a convex polygon."""
+    from jaxmpm.physics.bodies import convex_outline
+
+    for body in scene.bodies:
+        if body.name in contact.pair and body.kinematics.type != "free" and convex_outline(body.region.vertices) is None:
+            raise SceneError(
+                f"{key} = {list(contact.pair)} pairs the {body.kinematics.type} body {body.name!r}, whose region is not "
+                "a convex polygon, while numerics.structure_hold = 'points' pushes points out of a convex outline "
+                "only; use a convex region or structure_hold = 'mass'."
+            )
 
 
 def check_probes(scene):

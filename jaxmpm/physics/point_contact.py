@@ -1,0 +1,126 @@
+"""Contact at the points: a structure pushes the soil's points, not its nodes
+(numerics.structure_hold = "points").
+
+On the grid (`contact`) a prescribed or rigid body holds every node it shares with the soil, so
+its outline is resolved to whole nodes: a base three cells wide bore like one four to six
+cells wide, or two, with the grid lines (docs/convergence.md, "A rigid base on deformable
+soil"). Here it holds no node. Each point p of a free body in contact with it, a square of side
+s (the point spacing), that reaches into the outline, d_p < s / 2 (d_p the signed distance of
+its centre from the outline, `bodies.outline_distances`), is pushed out along the outline's
+outward normal n_p:
+
+    f_p = max(0, k_p (s / 2 - d_p) - c_p v_n) n_p,    k_p = PENALTY E V_p / s^2,
+    c_p = 2 DAMPING_RATIO sqrt(k_p m_p),               v_n = (v_p - v_b(x_p)) . n_p
+
+with E the free body's Young's modulus, V_p and m_p the point's volume and mass and v_b the
+body's velocity at the point: a layer s / PENALTY thick, as stiff as the soil, between the two,
+so its compliance vanishes with the cell (Wriggers, Computational Contact Mechanics, 2006,
+ch. 6, penalty methods; Nairn et al. 2018, Comput. Part. Mech. 5, for MPM contact found from
+the bodies' positions rather than their shape functions' overlap). The push reaches the grid
+as the impulse dt sum_p N_I(x_p) f_p at the free field's nodes; Coulomb friction acts at those
+nodes with that impulse as its normal one (`contact.pushed_impulse`), and the body receives
+minus both (a rigid body's motion is solved with the friction, `bodies.solve_rigid_motions`).
+
+Stability: the push adds a spring k_p to a point of mass m_p, omega dt = sqrt(k_p / m_p) dt =
+sqrt(PENALTY E / (rho c^2)) cfl ppc (c the p-wave speed): 1.4 for sand (nu = 0.3) at the
+shipped cfl 0.4 and two points per cell. Where a larger step or more points per cell would
+take it past 1.5, k_p is held at 2.25 m_p / dt^2 (`STABLE_SPRING`).
+"""
+
+import jax.numpy as jnp
+
+from jaxmpm.physics.bodies import (
+    OUTLINE_RESOLUTION, no_surface, outline_distances, outline_now, prescribed_velocity, rigid_body_frame, spin_velocity,
+    union_of,
+)
+from jaxmpm.physics.contact import PointPush
+from jaxmpm.physics.grid import fold_ghosts, scatter_to_nodes
+from jaxmpm.tensors import stack_last
+
+PENALTY = 4.0          # k_p s^2 / (E V_p): the contact layer is s / PENALTY thick, as stiff as the soil
+STABLE_SPRING = 2.25   # k_p dt^2 / m_p at most: the point's own spring turns by omega dt <= 1.5 a step
+DAMPING_RATIO = 0.5    # of the point's spring k_p on its mass m_p, against its normal rate only
+
+
+def safe_sqrt(values):
+    """sqrt(x) for x >= 0 with a finite gradient at 0 (an inert point that pads a sharded state
+    has no mass)."""
+    positive = values > 0.0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, values, 1.0)), 0.0)
+
+
+def pushed_interfaces(structure):
+    """{interface index: (free block, structure parts, this part's index among them)}: the
+    contacts between a free body and a prescribed or rigid body with a convex outline, when
+    structures push points (structure_hold = "points"). A structure of joined parts
+    (`BodyBlock.partners`, a pile's tip and shaft) pushes as their union, each part the points
+    whose nearest surface is its own."""
+    if structure.structure_hold != "points":
+        return {}
+    blocks_of_field = {}
+    for block in structure.bodies:
+        blocks_of_field.setdefault(block.field, []).append(block)
+    pushed = {}
+    for index, interface in enumerate(structure.interfaces):
+        if interface.contact is None or interface.kinematic_first == interface.kinematic_second:
+            continue
+        body_field, free_field = ((interface.first, interface.second) if interface.kinematic_first
+                                  else (interface.second, interface.first))
+        body = blocks_of_field[body_field][0]
+        if body.outline is None:
+            continue
+        fields = sorted((body_field, *body.partners))
+        parts = tuple(blocks_of_field[field][0] for field in fields)
+        pushed[index] = (blocks_of_field[free_field][0], parts, fields.index(body_field))
+    return pushed
+
+
+def body_velocity_now(params, state, block, structure, positions):
+    """A prescribed or rigid body's velocity (n, 2) at `positions` at the start of the step."""
+    if block.kinematics == "prescribed":
+        time = state.step.astype(positions.dtype) * structure.dt
+        velocity = prescribed_velocity(block, params["bodies"][block.name]["velocity"], time)
+        return jnp.broadcast_to(velocity, positions.shape)
+    motion = state.rigid[block.name]
+    _, centre, _ = rigid_body_frame(state.particles, block, structure.point_spacing)
+    return motion.velocity + spin_velocity(motion.spin, positions - centre)
+
+
+def point_pushes(params, state, structure, free, parts, own):
+    """(N_free, 2) force f_p [N/m] each point of `free` receives from part `own` of the
+    structure made of `parts` (the module's docstring): the push of their union, on the points
+    whose nearest surface is that part's (`bodies.union_of`)."""
+    particles = state.particles
+    positions = particles.x[free.points]
+    measured = []
+    for part in parts:
+        corners = outline_now(part, state, positions.dtype, structure.axisymmetric)
+        measured.append(outline_distances(corners, positions, no_surface(part, corners, structure)))
+    distance, normal = union_of(measured, OUTLINE_RESOLUTION * structure.layout.cell)
+    owner = jnp.argmax(jnp.stack([part_distance == distance for part_distance, _ in measured]), axis=0)
+    spacing = structure.point_spacing
+    depth = jnp.where(owner == own, 0.5 * spacing - distance, 0.0)
+    material = params["materials"][free.material_name]
+    mass = particles.mass[free.points]
+    stiffness = jnp.minimum(PENALTY * material["young"] * particles.volume[free.points] / (spacing * spacing),
+                            STABLE_SPRING * mass / (structure.dt * structure.dt))
+    dashpot = 2.0 * DAMPING_RATIO * safe_sqrt(stiffness * mass)
+    relative = particles.v[free.points] - body_velocity_now(params, state, parts[own], structure, positions)
+    leaving = relative[:, 0] * normal[:, 0] + relative[:, 1] * normal[:, 1]
+    pressed = jnp.where(depth > 0.0, jnp.maximum(stiffness * depth - dashpot * leaving, 0.0), 0.0)
+    return pressed[:, None] * normal
+
+
+def pushes(params, state, structure, stencil, field):
+    """{interface index: PointPush} of every pushed interface (`pushed_interfaces`): the points'
+    forces (`point_pushes`) times dt, spread to their nodes as their weight is."""
+    found = {}
+    count = state.particles.x.shape[0]
+    for index, (free, parts, own) in pushed_interfaces(structure).items():
+        force = jnp.zeros((count, 2), state.particles.x.dtype).at[free.points].set(
+            point_pushes(params, state, structure, free, parts, own))
+        spread = stack_last([stencil.weights * force[:, None, None, axis] for axis in range(2)])
+        nodes = scatter_to_nodes(structure.layout, stencil.base, spread, field, structure.fields, structure.derivatives)
+        nodes = fold_ghosts(nodes, structure.layout, structure.boundaries, scalars=0)
+        found[index] = PointPush(structure.dt * nodes[free.field])
+    return found
