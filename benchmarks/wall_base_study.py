@@ -1,4 +1,5 @@
-"""How a rigid structure bears on a deformable base, under each structure hold and shape.
+"""How a rigid structure bears on a deformable base, under each structure hold and shape
+(numerics.structure_hold = "mass", "outline" and "points").
 
     python benchmarks/wall_base_study.py shift      # the calibration twin with its grid lines moved
     python benchmarks/wall_base_study.py rocking    # a rigid block tilted on an elastic layer
@@ -42,6 +43,7 @@ TWIN = ROOT / "examples" / "calibrate_wall_scene.toml"
 SHIFT = 0.3                       # of a cell
 TILT = math.radians(2.0)
 DURATION, SETTLED = 1.5, 1.2       # the rocking run [s], and the time from which it has settled
+HOLDS = ("mass", "outline", "points")   # numerics.structure_hold
 
 
 def body(data, name):
@@ -87,7 +89,7 @@ def shift_study():
     for label, along_x, along_y in (("on the grid lines (shipped)", False, False), ("wall 0.3 cell along x", True, False),
                                     ("foundation 0.3 cell deeper", False, True), ("both", True, True)):
         scene = shifted_twin(along_x, along_y)
-        for hold in ("mass", "outline"):
+        for hold in HOLDS:
             coarse, fine = wall_top_x(scene, hold, 0.4), wall_top_x(scene, hold, 0.2)
             print(f"| {label} | {hold} | {coarse:.2f} | {fine:.2f} | {100 * (fine / coarse - 1):+.1f} % |", flush=True)
 
@@ -147,7 +149,7 @@ def rocking_study():
     print("| shape | hold | cell h | h/2 | h at cfl 0.2 | h, the layer 0.3 cell deeper | h, the block half a cell along x |")
     print("|---|---|---|---|---|---|---|")
     for shape in ("bspline2", "linear"):
-        for hold in ("mass", "outline"):
+        for hold in HOLDS:
             values = [settled_rotation(shape, hold, 1, 0.4), settled_rotation(shape, hold, 2, 0.4),
                       settled_rotation(shape, hold, 1, 0.2), settled_rotation(shape, hold, 1, 0.4, lower=SHIFT),
                       settled_rotation(shape, hold, 1, 0.4, along=0.5)]
@@ -156,7 +158,7 @@ def rocking_study():
     print("| shape | hold | cfl 0.4 | cfl 0.2 |")
     print("|---|---|---|---|")
     for shape in ("bspline2", "linear"):
-        for hold in ("mass", "outline"):
+        for hold in HOLDS:
             cells = []
             for cfl in (0.4, 0.2):
                 time, rotation = rocking_history(shape, hold, 1, cfl, friction=10.0)

@@ -335,8 +335,10 @@ def describe_structure_hold(structure) -> str:
 
     if not held_structures(structure):
         return ""
-    where = {"mass": "where they have mass", "outline": "whose cell meets their outline"}[structure.structure_hold]
-    return f', structures hold the nodes {where} (numerics.structure_hold = "{structure.structure_hold}")'
+    how = {"mass": "structures hold the nodes where they have mass",
+           "outline": "structures hold the nodes whose cell meets their outline",
+           "points": "prescribed and rigid structures push the points that reach into their outline"}[structure.structure_hold]
+    return f', {how} (numerics.structure_hold = "{structure.structure_hold}")'
 
 
 def describe_stress_substeps(scene) -> str:

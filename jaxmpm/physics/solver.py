@@ -69,7 +69,7 @@ from jaxmpm.physics.bodies import (
     node_positions, normal_cones, prescribed_outline_normals, received_impulses,
 )
 from jaxmpm.physics.contact import Interface, PointPush, apply_interfaces, normals_of, unit
-from jaxmpm.physics.point_contact import pushes
+from jaxmpm.physics.point_contact import pushed_interfaces, pushes
 from jaxmpm.physics.subcycling import alone, correct, predict, put_back, subcycled_blocks
 from jaxmpm.physics.grid import (
     GridLayout, apply_edge_conditions, boundary_mask, fold_ghosts, gather_from_nodes, per_unit_mass, scatter_to_nodes,
@@ -515,8 +515,10 @@ def contact_outlines(structure, state):
     """What the contact normals read of the bodies' outlines at the nodes (`contact.interface_normals`):
     {field: outward normals} of prescribed bodies, {field: NormalCone} of the outlines that
     bound a contact's normal; None when no interface asks for them."""
-    prescribed = any(interface.normal_from is not None for interface in structure.interfaces)
-    bounded = any(interface.bounded_by is not None for interface in structure.interfaces)
+    pushed = pushed_interfaces(structure)      # contacts at the points take no normal (`point_contact`)
+    on_grid = [interface for index, interface in enumerate(structure.interfaces) if index not in pushed]
+    prescribed = any(interface.normal_from is not None for interface in on_grid)
+    bounded = any(interface.bounded_by is not None for interface in on_grid)
     if not (prescribed or bounded):
         return None
     positions = node_positions(structure.layout, state.particles.x.dtype)

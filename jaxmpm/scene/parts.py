@@ -90,8 +90,10 @@ class Numerics:
     each step's stress update of a body that can yield is made of (`materials.base.points_update`).
     structure_hold: the nodes at which a structure (a prescribed or rigid body, or an elastic body
     whose outline bounds a contact's normal) holds the bodies in contact with it: "mass",
-    wherever its points have mass (the multi-velocity-field rule), or "outline", only where the
-    node's cell (the square of side h centred on it) meets its outline (`bodies.held_by_outline`).
+    wherever its points have mass (the multi-velocity-field rule), "outline", only where the
+    node's cell (the square of side h centred on it) meets its outline (`bodies.held_by_outline`),
+    or "points": a prescribed or rigid structure holds no node and pushes the points of the
+    bodies it meets out of its outline (`physics.point_contact`).
     """
 
     preset: str = DEFAULT_PRESET
