@@ -252,10 +252,10 @@ KINEMATICS_OF = {"free": Kinematics("free"), "prescribed": Kinematics("prescribe
 EVERY_KIND_TWICE = tuple(kind for kind in BODY_KINDS for _ in range(2))
 
 
-@pytest.mark.parametrize("kinds,first_of_each_paired,geometry", [
-    (EVERY_KIND_TWICE, True, geometry) for geometry in ("plane_strain", "axisymmetric")
-] + [(("subcycled", "subcycled"), False, "plane_strain")])
-def test_every_pair_of_body_kinds_runs_or_is_refused(kinds, first_of_each_paired, geometry):
+@pytest.mark.parametrize("kinds,first_of_each_paired,geometry,hold", [
+    (EVERY_KIND_TWICE, True, geometry, hold) for geometry in ("plane_strain", "axisymmetric") for hold in ("mass", "points")
+] + [(("subcycled", "subcycled"), False, "plane_strain", "mass")])
+def test_every_pair_of_body_kinds_runs_or_is_refused(kinds, first_of_each_paired, geometry, hold):
     # A sand layer and blocks above it of the given kinds, the first of each kind in contact
     # with the sand and the second bonded to it (no pair): two blocks of every kind in one
     # scene, so every pair of kinds meets in it, paired and bonded; before bodies.py a
@@ -264,7 +264,8 @@ def test_every_pair_of_body_kinds_runs_or_is_refused(kinds, first_of_each_paired
     # run by the tests of that kind: the punch (prescribed, paired), the axisymmetric ring and
     # plate (prescribed, bonded), the small wall and the light footings (rigid, paired and
     # bonded), the subcycled wall and block (paired); the subcycled blocks bonded to the sand
-    # alone are run here.
+    # alone are run here. Under numerics.structure_hold = "points" the paired prescribed and
+    # rigid blocks push the sand's points instead (`point_contact`).
     blocks = tuple(
         Body(f"block{index}", "steel", Rectangle((0.05 + 0.15 * index, 0.2), (0.15 + 0.15 * index, 0.3)),
              kinematics=KINEMATICS_OF[kind])
@@ -284,6 +285,7 @@ def test_every_pair_of_body_kinds_runs_or_is_refused(kinds, first_of_each_paired
         duration=3e-4,
         output_every=1e-4,
         probes=(Probe("sand", "body_displacement", body="sand"),),
+        numerics=Numerics(structure_hold=hold),
     )
     try:
         sim = Simulation(scene)
