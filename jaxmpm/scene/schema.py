@@ -82,14 +82,17 @@ NUMERICS = Section((
         "Euler) is first order in its own step, and a viscoplastic sand's result then moves with dt; each "
         "substep costs another stress update (docs/convergence.md)", default=DEFAULT_STRESS_SUBSTEPS, low=1,
         high=MAX_STRESS_SUBSTEPS, low_inclusive=True, high_inclusive=True),
-    Key("structure_hold", "str", "the nodes at which a structure (a prescribed or rigid body, or an elastic body "
-        "of convex region in contact with soil that yields) holds the bodies in contact with it: 'mass', every "
-        "node where its points have mass, up to a cell and a quarter beyond its outline with quadratic B-splines "
-        "(the multi-velocity-field rule), or 'outline', only the nodes whose cell (the square of side h centred "
-        "on the node) meets its outline; a structure held by its base, such as a free wall, moves with the cell "
-        "under 'mass' (its displacement doubling at each halving with quadratic B-splines); 'outline' is a study "
-        "option: a rigid base under it is 2.6 times too soft with quadratic B-splines, and walks against its "
-        "load with its sides half a cell off the nodes (docs/convergence.md, \"A rigid base on deformable soil\")",
+    Key("structure_hold", "str", "how a structure (a prescribed or rigid body, or an elastic body of convex region "
+        "in contact with soil that yields) holds the bodies in contact with it: 'mass', at every node where its "
+        "points have mass, up to a cell and a quarter beyond its outline with quadratic B-splines (the "
+        "multi-velocity-field rule); 'outline', only at the nodes whose cell (the square of side h centred on the "
+        "node) meets its outline, a study option (a rigid base under it is 2.6 times too soft with quadratic "
+        "B-splines and walks against its load with its sides half a cell off the nodes); or 'points', where a "
+        "prescribed or rigid body of convex region holds no node and pushes the points that reach into its outline "
+        "back out (a penalty layer a quarter point spacing thick, as stiff as the soil; Coulomb friction at the "
+        "nodes), which resolves a base to the point spacing: a rigid block three cells wide on an elastic layer "
+        "turns 1.3 times as far as on an elastic half-space at the cell, converging with it, and 10 % less with the grid lines moved half a cell, where the node "
+        "holds are 3 times too stiff or 2.6 times too soft (docs/contact.md, \"Contact at the points\")",
         default=DEFAULT_STRUCTURE_HOLD, choices=STRUCTURE_HOLDS),
     Key("damping", "float", "local (Cundall) damping coefficient: each node's force is reduced by damping "
         "|f| sign(v); for quasi-static settling, never set by a preset", default=0.0, low=0.0, high=1.0,
