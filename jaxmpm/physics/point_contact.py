@@ -86,10 +86,10 @@ def body_velocity_now(params, state, block, structure, positions):
     return motion.velocity + spin_velocity(motion.spin, positions - centre)
 
 
-def point_pushes(params, state, structure, free, parts, own):
-    """(N_free, 2) force f_p [N/m] each point of `free` receives from part `own` of the
-    structure made of `parts` (the module's docstring): the push of their union, on the points
-    whose nearest surface is that part's (`bodies.union_of`)."""
+def point_pushes(params, state, structure, free, parts):
+    """((N_free, 2) force f_p [N/m] each point of `free` receives from the structure made of
+    `parts` (the module's docstring), (N_free,) the part whose surface is nearest the point,
+    which pushes it (`bodies.union_of`))."""
     particles = state.particles
     positions = particles.x[free.points]
     measured = []
@@ -99,28 +99,35 @@ def point_pushes(params, state, structure, free, parts, own):
     distance, normal = union_of(measured, OUTLINE_RESOLUTION * structure.layout.cell)
     owner = jnp.argmax(jnp.stack([part_distance == distance for part_distance, _ in measured]), axis=0)
     spacing = structure.point_spacing
-    depth = jnp.where(owner == own, 0.5 * spacing - distance, 0.0)
+    depth = 0.5 * spacing - distance
     material = params["materials"][free.material_name]
     mass = particles.mass[free.points]
     stiffness = jnp.minimum(PENALTY * material["young"] * particles.volume[free.points] / (spacing * spacing),
                             STABLE_SPRING * mass / (structure.dt * structure.dt))
     dashpot = 2.0 * DAMPING_RATIO * safe_sqrt(stiffness * mass)
-    relative = particles.v[free.points] - body_velocity_now(params, state, parts[own], structure, positions)
+    moving = jnp.stack([body_velocity_now(params, state, part, structure, positions) for part in parts])
+    relative = particles.v[free.points] - jnp.take_along_axis(moving, owner[None, :, None], axis=0)[0]
     leaving = relative[:, 0] * normal[:, 0] + relative[:, 1] * normal[:, 1]
     pressed = jnp.where(depth > 0.0, jnp.maximum(stiffness * depth - dashpot * leaving, 0.0), 0.0)
-    return pressed[:, None] * normal
+    return pressed[:, None] * normal, owner
 
 
-def pushes(params, state, structure, stencil, field):
+def pushes(params, state, structure, stencil):
     """{interface index: PointPush} of every pushed interface (`pushed_interfaces`): the points'
-    forces (`point_pushes`) times dt, spread to their nodes as their weight is."""
-    found = {}
-    count = state.particles.x.shape[0]
+    forces (`point_pushes`) times dt, spread to their nodes as their weights are, each part's
+    share in its own channels of one scatter of the free body's points per structure."""
+    groups = {}
     for index, (free, parts, own) in pushed_interfaces(structure).items():
-        force = jnp.zeros((count, 2), state.particles.x.dtype).at[free.points].set(
-            point_pushes(params, state, structure, free, parts, own))
-        spread = stack_last([stencil.weights * force[:, None, None, axis] for axis in range(2)])
-        nodes = scatter_to_nodes(structure.layout, stencil.base, spread, field, structure.fields, structure.derivatives)
-        nodes = fold_ghosts(nodes, structure.layout, structure.boundaries, scalars=0)
-        found[index] = PointPush(structure.dt * nodes[free.field])
+        groups.setdefault((free, parts), []).append((index, own))
+    found = {}
+    for (free, parts), members in groups.items():
+        force, owner = point_pushes(params, state, structure, free, parts)
+        weights = stencil.weights[free.points]
+        channels = [weights * jnp.where(owner == own, force[:, axis], 0.0)[:, None, None]
+                    for _, own in members for axis in range(2)]
+        nodes = scatter_to_nodes(structure.layout, stencil.base[free.points], stack_last(channels),
+                                 derivatives=structure.derivatives)
+        nodes = fold_ghosts(nodes, structure.layout, structure.boundaries, scalars=0)[0]
+        for number, (index, _) in enumerate(members):
+            found[index] = PointPush(structure.dt * nodes[..., 2 * number:2 * number + 2])
     return found

@@ -568,7 +568,7 @@ def make_step(structure: Structure):
             occupied = held_by_outline(structure, state, occupied)
         grid = Grid(nodes.mass, velocity_new, nodes.mass_gradient, occupied)
         normals = normals_of(structure.interfaces, nodes.mass, nodes.mass_gradient, contact_outlines(structure, state),
-                             pushes(params, state, structure, stencil, field))
+                             pushes(params, state, structure, stencil))
         velocity_new, motions = impose_body_motions(params, state, structure, grid, frictions, time_new, normals,
                                                     prediction.motions)
         impulses = []
