@@ -3,6 +3,7 @@
 
     python benchmarks/wall_base_study.py shift      # the calibration twin with its grid lines moved
     python benchmarks/wall_base_study.py rocking    # a rigid block tilted on an elastic layer
+    python benchmarks/wall_base_study.py figure     # the block's rotation under each hold as the cell shrinks
 
 shift: the wall top's x displacement [mm] of examples/calibrate_wall_scene.toml at 0.3 s
 (cfl 0.4 and 0.2) with the wall and the backfill moved 0.3 cell along x (the backfill 0.3 cell
@@ -15,7 +16,9 @@ linear-elastic sand (E = 2 MPa, nu = 0.3) over a fixed base, gravity tilted 2 de
 damping 0.3, for 1.5 s; the wall's rotation [mrad] averaged over 1.2-1.5 s at h and h/2 (cfl 0.4),
 at h and cfl 0.2, at h with the layer 0.3 cell deeper (the base off the grid lines), and at h
 with the block moved half a cell along x (its sides off the grid lines); then,
-with a base that cannot slip (friction 10), the rotation at 0.5 / 1.0 / 1.5 s. Against a rigid strip
+with a base that cannot slip (friction 10), the rotation at 0.5 / 1.0 / 1.5 s. figure: the
+rotation's history under each hold with quadratic B-splines at h, h/2 (and h/4 under
+"points"), drawn to docs/images/rocking_block.png. Against a rigid strip
 footing on an elastic half-space in plane strain (the flat punch turned by theta: pressure
 p(x) = E' theta x / (2 sqrt(a^2 - x^2)); K. L. Johnson, Contact Mechanics, 1985, chapter 2):
 M = pi E' a^2 theta / 4, with E' = E / (1 - nu^2), a the half-width, and M the overturning
@@ -166,8 +169,41 @@ def rocking_study():
             print(f"| {shape} | {hold} | {cells[0]} | {cells[1]} |", flush=True)
 
 
+def rocking_figure():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = {"mass": (1, 2), "outline": (1, 2), "points": (1, 2, 4)}
+    colours = {"mass": "tab:blue", "outline": "tab:red", "points": "tab:green"}
+    figure, (history, settled) = plt.subplots(1, 2, figsize=(11, 4.2))
+    elastic = 1e3 * strip_footing_rotation()
+    for hold, refinements in runs.items():
+        means = []
+        for refinement in refinements:
+            time, rotation = rocking_history("bspline2", hold, refinement, 0.4)
+            history.plot(time, 1e3 * rotation, color=colours[hold], alpha=1.0 / refinement ** 0.5,
+                         label=f"{hold}, h/{refinement}" if refinement > 1 else f"{hold}, h")
+            means.append(1e3 * float(np.mean(rotation[time >= SETTLED])))
+            print(f"{hold} h/{refinement}: {means[-1]:.3f} mrad", flush=True)
+        cells = [25.0 / refinement for refinement in refinements]
+        settled.plot(cells, means, "o-", color=colours[hold], label=hold)
+    for axes in (history, settled):
+        axes.axhline(elastic, color="black", linestyle="--", linewidth=1, label="elastic half-space")
+    history.set(xlabel="time [s]", ylabel="rotation [mrad]", title="rigid block on an elastic layer, gravity tilted 2°")
+    settled.set(xlabel="cell [mm]", ylabel=f"rotation, mean over {SETTLED}-{DURATION} s [mrad]", xscale="log",
+                title="under each numerics.structure_hold")
+    history.legend(fontsize=7, ncol=2)
+    settled.legend(fontsize=8)
+    figure.tight_layout()
+    path = ROOT / "docs" / "images" / "rocking_block.png"
+    figure.savefig(path, dpi=110)
+    print(f"wrote {path}")
+
+
 if __name__ == "__main__":
-    studies = {"shift": shift_study, "rocking": rocking_study}
+    studies = {"shift": shift_study, "rocking": rocking_study, "figure": rocking_figure}
     if len(sys.argv) != 2 or sys.argv[1] not in studies:
         sys.exit(f"usage: python {Path(__file__).name} {' | '.join(studies)}")
     studies[sys.argv[1]]()

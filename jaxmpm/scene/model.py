@@ -118,6 +118,11 @@ class Scene:
                          "layer turned 2.6 times as far as the elastic solution under it with quadratic B-splines, "
                          "and against its load with its sides half a cell off the nodes (docs/convergence.md, "
                          "\"A rigid base on deformable soil\"): prefer the default hold")
+        for name in self.elastic_structures_held_at_nodes:
+            notes.append(f"numerics.structure_hold = 'points' pushes points out of prescribed and rigid bodies only: "
+                         f"the elastic body {name!r} still holds the soil at every node where it has mass, so it "
+                         "does not move as the same body made rigid would (a stiff elastic wall on a base two cells "
+                         "wide moved 12 % less than the rigid one; docs/contact.md, \"Contact at the points\")")
         if self.dt is not None and self.cfl != DEFAULT_CFL:
             notes.append(f"scene.dt = {self.dt:g} s is given, so scene.cfl = {self.cfl:g} is not used: that dt is "
                          f"{self.dt / self.stable_dt:.3g} of the stable limit {self.stable_dt:.4g} s")
@@ -130,6 +135,23 @@ class Scene:
         on a rigid base (docs/convergence.md, "A rigid base on deformable soil")."""
         structures = self.contacts or any(body.kinematics.type in ("prescribed", "rigid") for body in self.bodies)
         return bool(structures) and self.numerics.structure_hold == "outline"
+
+    @property
+    def elastic_structures_held_at_nodes(self) -> tuple[str, ...]:
+        """Under numerics.structure_hold = "points", the free bodies of a material that does not
+        yield in contact with one that does (elastic structures): the points hold leaves them
+        held at the nodes."""
+        if self.numerics.structure_hold != "points":
+            return ()
+        bodies = {body.name: body for body in self.bodies}
+
+        def yields(name):
+            return self.material_of(bodies[name]).law.yields
+
+        return tuple(dict.fromkeys(
+            name for contact in self.contacts for name, other in (contact.pair, contact.pair[::-1])
+            if bodies[name].kinematics.type == "free" and bodies[other].kinematics.type == "free"
+            and not yields(name) and yields(other)))
 
     @property
     def filters_flowing_soil_every_step(self) -> bool:
