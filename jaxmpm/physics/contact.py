@@ -48,6 +48,11 @@ body (docs/convergence.md). Contact is detected where
 both fields have mass at a node, i.e. up to about one cell before the bodies touch (the
 supports of their shape functions overlap); docs/contact.md measures that gap.
 
+Under numerics.structure_hold = "points" a prescribed or rigid body's contact is not found at
+the nodes: its push on the soil's points (`point_contact`) arrives as the interface's normal
+impulse (`PointPush`, in place of a normal), and only the friction is resolved here
+(`pushed_impulse`).
+
 Every division and norm is guarded (double `where`): values and gradients are finite at
 empty nodes, zero normals and zero tangential velocity.
 """

@@ -9,7 +9,10 @@
                                              applies (`bodies`)
     velocity  = apply_interfaces             (several fields only) prescribed and rigid
                                              fields take their motion; contact and bonding
-                                             impulses between fields, in turn (`contact`)
+                                             impulses between fields, in turn (`contact`);
+                                             with structure_hold = "points" a structure's
+                                             contact is its push on the soil's points and
+                                             friction at their nodes (`point_contact`)
     particles = grid_to_particles            velocity (the points' own, fading, and the grid's),
                                              positions
     state     = move_kinematic_bodies        prescribed points move on their path, rigid
