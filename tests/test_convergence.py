@@ -531,6 +531,9 @@ def test_the_check_command_states_the_corner_radius_the_structure_hold_and_the_s
     assert 'structures hold the nodes where they have mass (numerics.structure_hold = "mass")' in said["1"]
     assert main(["check", str(path), "--quick", "--set", "numerics.structure_hold=outline"]) == 0
     assert 'whose cell meets their outline (numerics.structure_hold = "outline")' in capsys.readouterr().out
+    assert main(["check", str(path), "--quick", "--set", "numerics.structure_hold=points"]) == 0
+    assert ('push the points that reach into their outline (numerics.structure_hold = "points")'
+            in capsys.readouterr().out)
     assert "substeps" not in said["1"]
     assert main(["check", str(path), "--quick", "--set", "numerics.stress_substeps=4"]) == 0
     assert "stress update in 4 substeps" in capsys.readouterr().out
