@@ -138,11 +138,14 @@ class Scene:
 
     @property
     def elastic_structures_held_at_nodes(self) -> tuple[str, ...]:
-        """Under numerics.structure_hold = "points", the free bodies of a material that does not
-        yield in contact with one that does (elastic structures): the points hold leaves them
-        held at the nodes."""
+        """Under numerics.structure_hold = "points", the free bodies of convex region and a
+        material that does not yield in contact with a free one that does (elastic structures,
+        whose outline bounds the contact's normal): the points hold leaves them held at the
+        nodes."""
         if self.numerics.structure_hold != "points":
             return ()
+        from jaxmpm.physics.bodies import convex_outline
+
         bodies = {body.name: body for body in self.bodies}
 
         def yields(name):
@@ -151,7 +154,7 @@ class Scene:
         return tuple(dict.fromkeys(
             name for contact in self.contacts for name, other in (contact.pair, contact.pair[::-1])
             if bodies[name].kinematics.type == "free" and bodies[other].kinematics.type == "free"
-            and not yields(name) and yields(other)))
+            and not yields(name) and yields(other) and convex_outline(bodies[name].region.vertices) is not None))
 
     @property
     def filters_flowing_soil_every_step(self) -> bool:
