@@ -194,6 +194,8 @@ def rocking_figure():
     history.set(xlabel="time [s]", ylabel="rotation [mrad]", title="rigid block on an elastic layer, gravity tilted 2°")
     settled.set(xlabel="cell [mm]", ylabel=f"rotation, mean over {SETTLED}-{DURATION} s [mrad]", xscale="log",
                 title="under each numerics.structure_hold")
+    settled.set_xticks([6.25, 12.5, 25.0], labels=["6.25", "12.5", "25"])
+    settled.minorticks_off()
     history.legend(fontsize=7, ncol=2)
     settled.legend(fontsize=8)
     figure.tight_layout()
