@@ -2,9 +2,10 @@
 (numerics.structure_hold = "points").
 
 On the grid (`contact`) a prescribed or rigid body holds every node it shares with the soil, so
-its outline is resolved to whole nodes: a base three cells wide bore like one four to six
-cells wide, or two, with the grid lines (docs/convergence.md, "A rigid base on deformable
-soil"). Here it holds no node. Each point p of a free body in contact with it, a square of side
+its outline is resolved to whole nodes: a rigid block three cells wide on an elastic layer
+turned a third as far as elasticity says with quadratic B-splines, and 60 % further with the
+grid lines moved half a cell (docs/convergence.md, "A rigid base on deformable soil"). Here
+it holds no node. Each point p of a free body in contact with it, a square of side
 s (the point spacing), that reaches into the outline, d_p < s / 2 (d_p the signed distance of
 its centre from the outline, `bodies.outline_distances`), is pushed out along the outline's
 outward normal n_p:
@@ -14,9 +15,8 @@ outward normal n_p:
 
 with E the free body's Young's modulus, V_p and m_p the point's volume and mass and v_b the
 body's velocity at the point: a layer s / PENALTY thick, as stiff as the soil, between the two,
-so its compliance vanishes with the cell (Wriggers, Computational Contact Mechanics, 2006,
-ch. 6, penalty methods; Nairn et al. 2018, Comput. Part. Mech. 5, for MPM contact found from
-the bodies' positions rather than their shape functions' overlap). The push reaches the grid
+so its compliance vanishes with the cell (the penalty method: Wriggers, Computational Contact
+Mechanics, 2nd ed., 2006, ch. 6). The push reaches the grid
 as the impulse dt sum_p N_I(x_p) f_p at the free field's nodes; Coulomb friction acts at those
 nodes with that impulse as its normal one (`contact.pushed_impulse`), and the body receives
 minus both (a rigid body's motion is solved with the friction, `bodies.solve_rigid_motions`).
