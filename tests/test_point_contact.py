@@ -161,21 +161,9 @@ def test_gradients_through_the_points_hold_match_central_differences():
     # The friction's derivative is 3.5e-10 of a loss of 1e-3: at a relative step of 1e-4 the
     # differences carry the run's round-off (AD 3.48964e-10 against 3.48987e-10 / 3.48888e-10 /
     # 3.46612e-10 at steps of 1e-2 / 1e-3 / 1e-4), so the step is 1e-3.
-    from tests.scenes import reverse_mode_against_central_differences
-    from tests.test_structure_hold import FOOTING
+    from tests.test_structure_hold import footing_gradients_against_central_differences
 
-    text = (FOOTING.replace('dtype = "float64"', 'dtype = "float64"\nstructure_hold = "points"')
-            .replace('[scene]', '[scene]\ngravity = [0.979, -9.760]')
-            .replace('kinematics = { type = "prescribed", velocity = [0.0, -0.05] }', 'kinematics = { type = "rigid" }')
-            .replace('model = "linear_elastic"\ndensity = 1800.0', 'model = "drucker_prager"\nfriction_angle = 30.0\ndensity = 1800.0')
-            .replace('name = "push"\nkind = "reaction"\nbody = "footing"', 'name = "centre"\nkind = "displacement"\nat = [0.3, 0.175]'))
-    sim = Simulation(Scene.from_toml(text))
-    assert sim.structure.structure_hold == "points"
-    reverse_mode_against_central_differences(sim, lambda probes: probes["centre"][-1, 1] + 0.3 * probes["centre"][-1, 0], [
-        ("sand.young", 5.0e6, ("materials", "sand", "young")),
-        ("sand.friction_angle", 30.0, ("materials", "sand", "friction_angle")),
-        ("sand/footing.friction", 0.5, ("contacts", "sand/footing", "friction")),
-    ], rel=1e-3, relative_step=1e-3)
+    footing_gradients_against_central_differences("points", relative_step=1e-3)
 
 
 def test_a_pile_in_two_joined_parts_pushes_as_one():
